@@ -1,0 +1,34 @@
+//! The calibration math core.
+//!
+//! Everything here is a pure function of numbers: no files, no sockets, no OpenCV.
+//! Inputs and outputs are nalgebra types named after the frames they connect
+//! (`base_from_flange`, `camera_from_target`, `base1_from_base2`), so a chain of
+//! compositions reads like the kinematic chain it computes.
+//!
+//! Layers inside the crate:
+//! - [`pose`]: conversions, the left perturbation used by every covariance,
+//!   rotation averaging and geodesic distances.
+//! - [`camera`]: the pinhole + OpenCV distortion model and its Jacobian.
+//! - [`handeye`]: closed-form AX = XB (Tsai–Lenz, Park–Martin, Horaud, Andreff,
+//!   Daniilidis) and AX = ZB (Shah, Li) solvers.
+//! - [`degeneracy`]: the checks every solver runs first, with reasons.
+//! - [`refine`]: the joint reprojection-error refinement of one robot, seeded by a
+//!   closed form, with robust loss, MAD outlier rejection and covariance.
+//! - [`base_to_base`]: both robots as one problem, with `base1_from_base2`.
+//! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
+//! - [`metrics`]: ISO 9283 accuracy and repeatability, touch-point verification.
+
+pub mod base_to_base;
+pub mod camera;
+pub mod degeneracy;
+pub mod handeye;
+pub mod metrics;
+pub mod pose;
+pub mod procrustes;
+pub mod refine;
+
+mod error;
+pub use error::CalibError;
+
+/// Shorthand for the isometries used everywhere in this crate.
+pub type Iso3 = nalgebra::Isometry3<f64>;

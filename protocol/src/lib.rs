@@ -1,0 +1,277 @@
+//! Wire and file types of the base-to-base calibration service.
+//!
+//! This crate is the bottom layer: plain serde types and their validation, nothing
+//! else. It performs no I/O, links no OpenCV, starts no runtime. Everything that
+//! crosses a process boundary (zenoh messages, result files, hand-eye files, the
+//! verification report) is described here, so every service and every test agrees
+//! on one definition.
+//!
+//! Poses are written as `{"t": [x, y, z], "q": [qx, qy, qz, qw]}`: metres, Hamilton
+//! quaternion in x, y, z, w order, and a pose named `T_a_b` maps points of frame `b`
+//! into frame `a` (`p_a = T_a_b * p_b`). In Rust the same transform is `a_from_b`.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use serde::{Deserialize, Serialize};
+
+/// Format tag of a base-to-base result file.
+pub const RESULT_FORMAT: &str = "b2b-result/1";
+/// Format tag of a hand-eye result file.
+pub const HANDEYE_FORMAT: &str = "b2b-handeye/1";
+
+/// How far from unit norm a quaternion on the wire may be before it is rejected
+/// rather than normalised. Six printed digits per component stay well inside it.
+pub const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
+
+/// Errors of this crate: a wire value that cannot be trusted.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ProtocolError {
+    /// A number that must be finite is NaN or infinite.
+    #[error("{field}: value {value} is not finite")]
+    NonFinite { field: String, value: f64 },
+    /// A quaternion whose norm is too far from 1 to be a rotation.
+    #[error("{field}: quaternion norm {norm:.6} is not 1 (tolerance {tolerance})")]
+    NotUnitQuaternion { field: String, norm: f64, tolerance: f64 },
+    /// A covariance that is not symmetric positive semi-definite or not finite.
+    #[error("{field}: {reason}")]
+    BadCovariance { field: String, reason: String },
+}
+
+/// A rigid transform as it is written in files and messages.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    /// Translation in metres.
+    pub t: [f64; 3],
+    /// Rotation as a Hamilton quaternion, x, y, z, w.
+    pub q: [f64; 4],
+}
+
+impl Pose {
+    /// The identity transform.
+    pub const IDENTITY: Pose = Pose { t: [0.0; 3], q: [0.0, 0.0, 0.0, 1.0] };
+
+    /// Converts to an isometry, checking that every number is finite and that the
+    /// quaternion is a rotation; `field` names the value in the error.
+    pub fn to_isometry(&self, field: &str) -> Result<Isometry3<f64>, ProtocolError> {
+        for (i, v) in self.t.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(ProtocolError::NonFinite { field: format!("{field}.t[{i}]"), value: *v });
+            }
+        }
+        for (i, v) in self.q.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(ProtocolError::NonFinite { field: format!("{field}.q[{i}]"), value: *v });
+            }
+        }
+        let [x, y, z, w] = self.q;
+        let q = Quaternion::new(w, x, y, z);
+        let norm = q.norm();
+        if (norm - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
+            return Err(ProtocolError::NotUnitQuaternion {
+                field: format!("{field}.q"),
+                norm,
+                tolerance: QUATERNION_NORM_TOLERANCE,
+            });
+        }
+        Ok(Isometry3::from_parts(
+            Translation3::new(self.t[0], self.t[1], self.t[2]),
+            UnitQuaternion::from_quaternion(q),
+        ))
+    }
+
+    /// Writes an isometry. The quaternion is put in the hemisphere `w >= 0` so that
+    /// the same rotation always prints the same way.
+    pub fn from_isometry(a_from_b: &Isometry3<f64>) -> Self {
+        let t = a_from_b.translation.vector;
+        let mut q = *a_from_b.rotation.quaternion();
+        if q.w < 0.0 {
+            q = -q;
+        }
+        Pose { t: [t.x, t.y, t.z], q: [q.i, q.j, q.k, q.w] }
+    }
+}
+
+impl From<&Isometry3<f64>> for Pose {
+    fn from(value: &Isometry3<f64>) -> Self {
+        Pose::from_isometry(value)
+    }
+}
+
+/// A 6x6 covariance over the perturbation `[rx, ry, rz, tx, ty, tz]` (radians,
+/// metres) applied on the left of the pose it belongs to.
+pub type Covariance6 = [[f64; 6]; 6];
+
+/// Checks a covariance for finiteness, symmetry and a non-negative diagonal.
+pub fn validate_covariance(field: &str, c: &Covariance6) -> Result<(), ProtocolError> {
+    let scale = c.iter().flatten().fold(1.0f64, |m, v| m.max(v.abs()));
+    for i in 0..6 {
+        for j in 0..6 {
+            if !c[i][j].is_finite() {
+                return Err(ProtocolError::NonFinite {
+                    field: format!("{field}[{i}][{j}]"),
+                    value: c[i][j],
+                });
+            }
+            if (c[i][j] - c[j][i]).abs() > 1e-12 * scale {
+                return Err(ProtocolError::BadCovariance {
+                    field: field.to_owned(),
+                    reason: format!("not symmetric at [{i}][{j}]"),
+                });
+            }
+        }
+        if c[i][i] < 0.0 {
+            return Err(ProtocolError::BadCovariance {
+                field: field.to_owned(),
+                reason: format!("negative variance {} at [{i}][{i}]", c[i][i]),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The predicted error of a touch-point check, in metres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PredictedError {
+    pub mean: f64,
+    pub p95: f64,
+}
+
+/// A capture that was not used, and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RejectedCapture {
+    pub robot: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<String>,
+    /// Row of `captures.csv` (1-based, header excluded), when the capture came from a file.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub row: Option<usize>,
+    pub reason: String,
+}
+
+/// Which captures went into a result.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CaptureSummary {
+    /// Robot id to the number of captures used.
+    pub used: BTreeMap<String, usize>,
+    pub rejected: Vec<RejectedCapture>,
+}
+
+/// Wall-clock time spent, in milliseconds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Timings {
+    pub detect: f64,
+    pub solve: f64,
+    pub total: f64,
+}
+
+/// `RESULT.json`: the base-to-base result (shared/interfaces.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationResult {
+    pub format: String,
+    pub method: String,
+    #[serde(rename = "T_base1_base2")]
+    pub base1_from_base2: Pose,
+    pub covariance: Covariance6,
+    pub predicted_touch_error_m: PredictedError,
+    /// Robot id to `T_flange_camera`.
+    pub hand_eye: BTreeMap<String, Pose>,
+    pub captures: CaptureSummary,
+    pub timings_ms: Timings,
+}
+
+impl CalibrationResult {
+    /// Checks every pose and the covariance.
+    pub fn validate(&self) -> Result<(), ProtocolError> {
+        if self.format != RESULT_FORMAT {
+            return Err(ProtocolError::BadCovariance {
+                field: "format".into(),
+                reason: format!("expected {RESULT_FORMAT}, found {}", self.format),
+            });
+        }
+        self.base1_from_base2.to_isometry("T_base1_base2")?;
+        validate_covariance("covariance", &self.covariance)?;
+        for (id, p) in &self.hand_eye {
+            p.to_isometry(&format!("hand_eye.{id}"))?;
+        }
+        Ok(())
+    }
+}
+
+/// Per-capture reprojection RMS in a hand-eye result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CaptureResidual {
+    pub image: String,
+    pub rms_px: f64,
+    /// Corners that the robust stage rejected as outliers.
+    pub outlier_corners: usize,
+}
+
+/// `HANDEYE.json`: the hand-eye of one robot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HandEyeResult {
+    pub format: String,
+    pub robot: String,
+    pub method: String,
+    #[serde(rename = "T_flange_camera")]
+    pub flange_from_camera: Pose,
+    /// Over `[rx, ry, rz, tx, ty, tz]` applied on the left of `T_flange_camera`.
+    pub covariance: Covariance6,
+    /// `T_base_target` estimated together with the hand-eye, when the method gives it.
+    #[serde(rename = "T_base_target", default, skip_serializing_if = "Option::is_none")]
+    pub base_from_target: Option<Pose>,
+    pub reprojection_rms_px: f64,
+    pub per_capture: Vec<CaptureResidual>,
+    pub captures: CaptureSummary,
+    pub timings_ms: Timings,
+}
+
+/// `verify --json`: the touch-point check of a result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VerifyReport {
+    pub n: usize,
+    pub touch_mean_mm: f64,
+    pub touch_rms_mm: f64,
+    pub touch_max_mm: f64,
+    pub procrustes_linear_error_mm: f64,
+    pub procrustes_angular_error_deg: f64,
+    pub within_predicted_p95: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    #[test]
+    fn pose_round_trips_through_json_exactly() {
+        let a_from_b = Isometry3::new(Vector3::new(0.1, -0.2, 0.3), Vector3::new(0.4, -1.1, 2.0));
+        let pose = Pose::from_isometry(&a_from_b);
+        let json = serde_json::to_string(&pose).unwrap();
+        let back: Pose = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, pose);
+        let iso = back.to_isometry("x").unwrap();
+        assert!((iso.translation.vector - a_from_b.translation.vector).norm() < 1e-15);
+        assert!(iso.rotation.angle_to(&a_from_b.rotation) < 1e-12);
+    }
+
+    #[test]
+    fn non_unit_quaternion_is_rejected_with_field_name() {
+        let p = Pose { t: [0.0; 3], q: [0.0, 0.0, 0.0, 2.0] };
+        let err = p.to_isometry("hand_eye.robot1").unwrap_err();
+        assert!(err.to_string().contains("hand_eye.robot1.q"), "{err}");
+    }
+
+    #[test]
+    fn nan_translation_is_rejected() {
+        let p = Pose { t: [0.0, f64::NAN, 0.0], q: [0.0, 0.0, 0.0, 1.0] };
+        assert!(matches!(p.to_isometry("T").unwrap_err(), ProtocolError::NonFinite { .. }));
+    }
+
+    #[test]
+    fn asymmetric_covariance_is_rejected() {
+        let mut c = [[0.0; 6]; 6];
+        c[0][1] = 1.0;
+        assert!(validate_covariance("covariance", &c).is_err());
+    }
+}
