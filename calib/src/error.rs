@@ -13,17 +13,27 @@ pub enum CalibError {
     #[error(
         "rotation axes are (nearly) parallel: the largest angle between motion axes is {max_angle_deg:.2} deg (need >= {min_angle_deg:.1} deg)"
     )]
-    ParallelRotationAxes { max_angle_deg: f64, min_angle_deg: f64 },
+    ParallelRotationAxes {
+        max_angle_deg: f64,
+        min_angle_deg: f64,
+    },
     /// The robot (nearly) only translated: rotation of the hand-eye is unobservable.
     #[error(
         "motion is (nearly) pure translation: largest relative rotation {max_rotation_deg:.3} deg (need >= {min_rotation_deg:.1} deg)"
     )]
-    PureTranslation { max_rotation_deg: f64, min_rotation_deg: f64 },
+    PureTranslation {
+        max_rotation_deg: f64,
+        min_rotation_deg: f64,
+    },
     /// The rotations are too small for a well-conditioned solution.
     #[error(
         "rotations too small: only {count} relative rotations exceed {min_rotation_deg:.1} deg (need {need})"
     )]
-    RotationsTooSmall { count: usize, need: usize, min_rotation_deg: f64 },
+    RotationsTooSmall {
+        count: usize,
+        need: usize,
+        min_rotation_deg: f64,
+    },
     /// A number that must be finite is not.
     #[error("non-finite value in {0}")]
     NonFinite(String),
@@ -32,7 +42,11 @@ pub enum CalibError {
     DegeneratePoints(String),
     /// RANSAC found no model with enough inliers.
     #[error("RANSAC found no consensus: best model has {best} inliers of {total} (need {need})")]
-    NoConsensus { best: usize, total: usize, need: usize },
+    NoConsensus {
+        best: usize,
+        total: usize,
+        need: usize,
+    },
     /// The optimiser failed or diverged.
     #[error("optimisation failed: {0}")]
     Optimisation(String),

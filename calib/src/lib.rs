@@ -16,6 +16,7 @@
 //!   closed form, with robust loss, MAD outlier rejection and covariance.
 //! - [`base_to_base`]: both robots as one problem, with `base1_from_base2`.
 //! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
+//! - [`synth`]: synthetic problems with known truth, for tests and benchmarks.
 //! - [`metrics`]: ISO 9283 accuracy and repeatability, touch-point verification.
 
 pub mod base_to_base;
@@ -26,6 +27,7 @@ pub mod metrics;
 pub mod pose;
 pub mod procrustes;
 pub mod refine;
+pub mod synth;
 
 mod error;
 pub use error::CalibError;

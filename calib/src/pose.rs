@@ -61,9 +61,8 @@ pub fn from_matrix4(m: &Matrix4<f64>, tol: f64) -> Result<Iso3, CalibError> {
         )));
     }
     let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into();
-    rotation_from_matrix(&r, tol).map(|rot| {
-        Iso3::from_parts(Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rot)
-    })
+    rotation_from_matrix(&r, tol)
+        .map(|rot| Iso3::from_parts(Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rot))
 }
 
 /// Reads a rotation matrix, checking orthonormality and handedness to within `tol`.
@@ -75,7 +74,9 @@ pub fn rotation_from_matrix(r: &Matrix3<f64>, tol: f64) -> Result<UnitQuaternion
         )));
     }
     if r.determinant() < 0.0 {
-        return Err(CalibError::Inconsistent("rotation matrix has determinant -1 (a reflection)".into()));
+        return Err(CalibError::Inconsistent(
+            "rotation matrix has determinant -1 (a reflection)".into(),
+        ));
     }
     Ok(nearest_rotation(r))
 }
@@ -119,7 +120,10 @@ pub fn kuka_abc(r: &UnitQuaternion<f64>) -> [f64; 3] {
 
 /// A KUKA frame (X, Y, Z in metres, A, B, C in radians) as an isometry.
 pub fn iso_from_kuka_frame(xyz: [f64; 3], abc: [f64; 3]) -> Iso3 {
-    Iso3::from_parts(Translation3::from(Vector3::from(xyz)), rotation_from_kuka_abc(abc[0], abc[1], abc[2]))
+    Iso3::from_parts(
+        Translation3::from(Vector3::from(xyz)),
+        rotation_from_kuka_abc(abc[0], abc[1], abc[2]),
+    )
 }
 
 /// Applies a left perturbation `[rx, ry, rz, tx, ty, tz]` (see the module docs).
@@ -145,7 +149,10 @@ pub fn geodesic_angle(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>) -> f64 {
 
 /// Translation distance (metres) and rotation angle (radians) between two poses.
 pub fn pose_distance(a: &Iso3, b: &Iso3) -> (f64, f64) {
-    ((a.translation.vector - b.translation.vector).norm(), geodesic_angle(&a.rotation, &b.rotation))
+    (
+        (a.translation.vector - b.translation.vector).norm(),
+        geodesic_angle(&a.rotation, &b.rotation),
+    )
 }
 
 /// The weighted chordal-L2 mean of rotations (Markley's quaternion average: the
@@ -180,9 +187,13 @@ pub fn average_rotations(
         .eigenvalues
         .iter()
         .enumerate()
-        .fold((0, f64::NEG_INFINITY), |(bi, bv), (i, &v)| if v > bv { (i, v) } else { (bi, bv) });
+        .fold((0, f64::NEG_INFINITY), |(bi, bv), (i, &v)| {
+            if v > bv { (i, v) } else { (bi, bv) }
+        });
     let v = eig.eigenvectors.column(imax);
-    Ok(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(v[3], v[0], v[1], v[2])))
+    Ok(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        v[3], v[0], v[1], v[2],
+    )))
 }
 
 /// The skew-symmetric matrix of `v`, so that `skew(v) * u = v × u`.
@@ -196,7 +207,10 @@ mod tests {
     use proptest::prelude::*;
 
     fn iso_strategy() -> impl Strategy<Value = Iso3> {
-        (prop::array::uniform3(-2.0..2.0f64), prop::array::uniform3(-3.0..3.0f64))
+        (
+            prop::array::uniform3(-2.0..2.0f64),
+            prop::array::uniform3(-3.0..3.0f64),
+        )
             .prop_map(|(t, r)| Iso3::new(Vector3::from(t), Vector3::from(r)))
     }
 
@@ -258,7 +272,9 @@ mod tests {
         let e = Vector3::new(0.0, 0.05, 0.0);
         let a = UnitQuaternion::from_scaled_axis(e) * mid;
         // Sign flips must not matter.
-        let b = UnitQuaternion::new_unchecked(-(UnitQuaternion::from_scaled_axis(-e) * mid).into_inner());
+        let b = UnitQuaternion::new_unchecked(
+            -(UnitQuaternion::from_scaled_axis(-e) * mid).into_inner(),
+        );
         let avg = average_rotations(&[a, b], None).unwrap();
         assert!(avg.angle_to(&mid) < 1e-9);
     }

@@ -1,1 +1,954 @@
-//! (in progress)
+//! Joint reprojection-error refinement (the Tabb–Ahmad Yousef "RP" family).
+//!
+//! Closed forms fit transforms to transforms and so weigh every capture's PnP
+//! pose equally, whatever its conditioning. Here the unknown transforms are fitted
+//! directly to the board corners' pixels of all captures at once, which is the
+//! maximum-likelihood estimate under pixel noise. The same engine serves one robot
+//! (unknowns `flange_from_camera`, `base_from_target`) and two robots sharing a
+//! board (see [`crate::base_to_base`]), because a capture's board pose is always
+//!
+//! `camera_from_target = inverse(ref_from_base * base_from_flange * flange_from_camera) * ref_from_target`
+//!
+//! with `ref_from_base` the identity for robot 1 and `base1_from_base2` for robot 2.
+//!
+//! Robustness: a Huber-weighted fit first, then MAD rejection of corners whose
+//! residual lies more than `k = 3.5` scaled MADs above the median.
+//!
+//! Noise model: a robot's pose error moves every corner of a capture together, so
+//! corner residuals are not independent. After the robust stage the inliers are
+//! fitted by generalised least squares: each capture's residuals are whitened by
+//! their covariance `C_c = σ² I + G_c Σ_robot G_cᵀ` (`G_c` the residuals'
+//! sensitivity to that capture's flange pose, `Σ_robot` the configured robot
+//! noise), with the pixel noise σ chosen so that the whitened residuals have unit
+//! variance. The low-rank form makes whitening cheap. Over 100 random problems
+//! (0.2 px, 0.05 mm, 0.01°) this halves the hand-eye error of plain reprojection
+//! least squares (0.165 → 0.075 mm, 0.035 → 0.015°), against 0.16 mm / 0.027° for
+//! the best closed form, and the covariance `(J̃ᵀJ̃)⁻¹` of the whitened problem is
+//! calibrated: the true error lies inside the 95% ellipsoid 95% of the time
+//! (0% if the robot term is left out). See the tests below and
+//! `tests/refine_vs_closed_form.rs`.
+//!
+//! Parameters are left perturbations (see [`crate::pose`]) of reference poses; the
+//! fit is re-centred between rounds so that the analytic Jacobians are exact at
+//! the solution.
+
+use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
+use nalgebra::{
+    DMatrix, DVector, Dyn, Matrix2x3, Matrix3, Matrix3x6, Matrix6, Owned, Point2, Point3, SMatrix,
+    U1, VecStorage, Vector6,
+};
+
+use crate::camera::{CameraModel, N_INTRINSICS};
+use crate::pose::{perturb_left, skew};
+use crate::{CalibError, Iso3};
+
+/// The robot's pose error per capture (one standard deviation), used for the
+/// covariance. KUKA specifies the iiwa's pose repeatability as ±0.1 mm; the
+/// defaults (0.05 mm, 0.01°) match that and the simulator's error model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RobotNoise {
+    pub sigma_t_m: f64,
+    pub sigma_r_rad: f64,
+}
+
+impl Default for RobotNoise {
+    fn default() -> Self {
+        RobotNoise {
+            sigma_t_m: 0.05e-3,
+            sigma_r_rad: 0.01_f64.to_radians(),
+        }
+    }
+}
+
+/// Options of the refinement.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefineOptions {
+    /// Also estimate `fx, fy, cx, cy, k1, k2, p1, p2, k3`.
+    pub refine_intrinsics: bool,
+    /// Huber threshold in units of the robust pixel sigma.
+    pub huber_k: f64,
+    /// MAD rejection threshold (residual > median + k * 1.4826 * MAD).
+    pub mad_k: f64,
+    pub robot_noise: RobotNoise,
+    /// Smallest number of corners a capture must keep to stay in the fit.
+    pub min_corners_per_capture: usize,
+}
+
+impl Default for RefineOptions {
+    fn default() -> Self {
+        RefineOptions {
+            refine_intrinsics: false,
+            huber_k: 1.345,
+            mad_k: 3.5,
+            robot_noise: RobotNoise::default(),
+            min_corners_per_capture: 4,
+        }
+    }
+}
+
+/// One capture: where the robot said its flange was, and the board corners seen.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardCapture {
+    pub base_from_flange: Iso3,
+    /// Corner positions in the target frame, paired with `pixels`.
+    pub target_points: Vec<Point3<f64>>,
+    pub pixels: Vec<Point2<f64>>,
+}
+
+/// How one capture enters the joint problem (indices into the pose blocks).
+#[derive(Debug, Clone)]
+pub(crate) struct CaptureModel {
+    pub capture: BoardCapture,
+    pub hand_eye: usize,
+    pub ref_from_base: Option<usize>,
+    pub target: usize,
+    pub camera: usize,
+    /// Which corners are in the fit.
+    pub inlier: Vec<bool>,
+}
+
+/// The adjoint of a pose for left perturbations ordered `[ω, v]`.
+fn adjoint(m: &Iso3) -> Matrix6<f64> {
+    let r = m.rotation.to_rotation_matrix().into_inner();
+    let t = m.translation.vector;
+    let mut a = Matrix6::zeros();
+    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
+    a.fixed_view_mut::<3, 3>(3, 0).copy_from(&(skew(&t) * r));
+    a
+}
+
+/// The result of the joint problem, in the engine's terms.
+#[derive(Debug, Clone)]
+pub(crate) struct EngineSolution {
+    pub poses: Vec<Iso3>,
+    pub cameras: Vec<CameraModel>,
+    /// Covariance of all parameters (6 per pose block, then 9 per camera when
+    /// intrinsics are refined).
+    pub covariance: DMatrix<f64>,
+    pub sigma_px: f64,
+    pub rms_px: f64,
+    /// Per capture: RMS over inlier corners, and the number of rejected corners.
+    pub per_capture: Vec<(f64, usize)>,
+}
+
+#[derive(Debug, Clone)]
+struct Engine {
+    reference_poses: Vec<Iso3>,
+    reference_cameras: Vec<CameraModel>,
+    refine_intrinsics: bool,
+    captures: Vec<CaptureModel>,
+    /// sqrt of the Huber weight per capture per corner.
+    sqrt_weights: Vec<Vec<f64>>,
+    /// Per capture, the whitening of its residuals by their covariance (pixel
+    /// noise plus the robot's pose noise), once the robust stage is over.
+    whitening: Option<Vec<Whitening>>,
+    params: DVector<f64>,
+}
+
+/// `C^{-1/2} = (I + Q diag(d) Qᵀ) / σ` for a capture's residual covariance
+/// `C = σ² I + Q diag(s²) Qᵀ` (rank-6 robot term; `d = σ / sqrt(σ² + s²) - 1`).
+#[derive(Debug, Clone)]
+struct Whitening {
+    q: DMatrix<f64>,
+    d: Vector6<f64>,
+    inv_sigma: f64,
+}
+
+impl Whitening {
+    fn apply_vector(&self, r: &mut nalgebra::DVectorViewMut<'_, f64>) {
+        if self.q.nrows() == 0 {
+            return;
+        }
+        let mut qtr = self.q.transpose() * &*r;
+        qtr.component_mul_assign(&self.d);
+        *r += &self.q * qtr;
+        *r *= self.inv_sigma;
+    }
+
+    fn apply_matrix(&self, j: &mut nalgebra::DMatrixViewMut<'_, f64>) {
+        if self.q.nrows() == 0 {
+            return;
+        }
+        let mut qtj = self.q.transpose() * &*j;
+        for (k, mut row) in qtj.row_iter_mut().enumerate() {
+            row *= self.d[k];
+        }
+        *j += &self.q * qtj;
+        *j *= self.inv_sigma;
+    }
+}
+
+struct Linearisation {
+    residuals: DVector<f64>,
+    jacobian: DMatrix<f64>,
+    /// Per capture: the row range and the 2k x 6 sensitivity to the flange pose.
+    robot_blocks: Vec<(usize, DMatrix<f64>)>,
+}
+
+impl Engine {
+    fn n_params(&self) -> usize {
+        6 * self.reference_poses.len()
+            + if self.refine_intrinsics {
+                N_INTRINSICS * self.reference_cameras.len()
+            } else {
+                0
+            }
+    }
+
+    fn pose(&self, b: usize) -> Iso3 {
+        let d = Vector6::from_iterator(self.params.rows(6 * b, 6).iter().copied());
+        perturb_left(&d, &self.reference_poses[b])
+    }
+
+    fn camera(&self, c: usize) -> CameraModel {
+        let mut cam = self.reference_cameras[c].clone();
+        if self.refine_intrinsics {
+            let off = 6 * self.reference_poses.len() + N_INTRINSICS * c;
+            let mut p = cam.params();
+            for (k, v) in p.iter_mut().enumerate() {
+                *v += self.params[off + k];
+            }
+            cam.set_params(&p);
+        }
+        cam
+    }
+
+    fn n_residuals(&self) -> usize {
+        self.captures
+            .iter()
+            .map(|c| 2 * c.inlier.iter().filter(|x| **x).count())
+            .sum()
+    }
+
+    /// Residuals and (optionally) the Jacobian; `weighted` applies Huber weights.
+    fn linearise(&self, with_jacobian: bool, weighted: bool) -> Option<Linearisation> {
+        let m = self.n_residuals();
+        let n = self.n_params();
+        let mut r = DVector::zeros(m);
+        let mut j = if with_jacobian {
+            DMatrix::zeros(m, n)
+        } else {
+            DMatrix::zeros(0, 0)
+        };
+        let mut robot_blocks = Vec::with_capacity(self.captures.len());
+        let poses: Vec<Iso3> = (0..self.reference_poses.len())
+            .map(|b| self.pose(b))
+            .collect();
+        let cameras: Vec<CameraModel> = (0..self.reference_cameras.len())
+            .map(|c| self.camera(c))
+            .collect();
+        let intr_off = 6 * poses.len();
+        let mut row = 0;
+        for (ci, cap) in self.captures.iter().enumerate() {
+            let x = poses[cap.hand_eye];
+            let z = cap.ref_from_base.map(|b| poses[b]);
+            let w = poses[cap.target];
+            let base_from_camera = cap.capture.base_from_flange * x;
+            let ref_from_camera = match z {
+                Some(z) => z * base_from_camera,
+                None => base_from_camera,
+            };
+            let camera_from_ref = ref_from_camera.inverse();
+            let camera_from_target = camera_from_ref * w;
+            let cam = &cameras[cap.camera];
+            // Sensitivities of the camera-frame left perturbation to each block.
+            let d_target = adjoint(&camera_from_ref);
+            let d_link = -d_target;
+            let d_hand_eye = -adjoint(&x.inverse());
+            let d_robot = -adjoint(&base_from_camera.inverse());
+            let start = row;
+            let n_in = cap.inlier.iter().filter(|v| **v).count();
+            let mut g = if with_jacobian {
+                DMatrix::zeros(2 * n_in, 6)
+            } else {
+                DMatrix::zeros(0, 0)
+            };
+            let mut local = 0;
+            for (k, (p, uv)) in cap
+                .capture
+                .target_points
+                .iter()
+                .zip(&cap.capture.pixels)
+                .enumerate()
+            {
+                if !cap.inlier[k] {
+                    continue;
+                }
+                let sw = if weighted {
+                    self.sqrt_weights[ci][k]
+                } else {
+                    1.0
+                };
+                let p_c = camera_from_target * p;
+                let (proj, jp): (Point2<f64>, Matrix2x3<f64>) = cam.project_with_jacobian(&p_c)?;
+                let e = proj - uv;
+                r[row] = sw * e.x;
+                r[row + 1] = sw * e.y;
+                if with_jacobian {
+                    let mut dp = Matrix3x6::zeros();
+                    dp.fixed_view_mut::<3, 3>(0, 0)
+                        .copy_from(&(-skew(&p_c.coords)));
+                    dp.fixed_view_mut::<3, 3>(0, 3)
+                        .copy_from(&Matrix3::identity());
+                    let jd: SMatrix<f64, 2, 6> = jp * dp * sw;
+                    let mut put = |block: usize, d: &Matrix6<f64>| {
+                        let v = jd * d;
+                        for a in 0..2 {
+                            for b in 0..6 {
+                                j[(row + a, 6 * block + b)] += v[(a, b)];
+                            }
+                        }
+                    };
+                    put(cap.target, &d_target);
+                    put(cap.hand_eye, &d_hand_eye);
+                    if let Some(zb) = cap.ref_from_base {
+                        put(zb, &d_link);
+                    }
+                    let gr = jd * d_robot;
+                    for a in 0..2 {
+                        for b in 0..6 {
+                            g[(2 * local + a, b)] = gr[(a, b)];
+                        }
+                    }
+                    if self.refine_intrinsics {
+                        let ji = cam.intrinsics_jacobian(&p_c)? * sw;
+                        let off = intr_off + N_INTRINSICS * cap.camera;
+                        for a in 0..2 {
+                            for b in 0..N_INTRINSICS {
+                                j[(row + a, off + b)] = ji[(a, b)];
+                            }
+                        }
+                    }
+                }
+                row += 2;
+                local += 1;
+            }
+            if let Some(w) = self.whitening.as_ref().map(|w| &w[ci]) {
+                w.apply_vector(&mut r.rows_mut(start, row - start));
+                if with_jacobian {
+                    w.apply_matrix(&mut j.rows_mut(start, row - start));
+                }
+            }
+            if with_jacobian {
+                robot_blocks.push((start, g));
+            }
+        }
+        Some(Linearisation {
+            residuals: r,
+            jacobian: j,
+            robot_blocks,
+        })
+    }
+
+    /// Computes each capture's residual whitening at the current estimate, with
+    /// the pixel noise σ chosen so that the whitened residuals have unit variance
+    /// (`Σ rᵀ C⁻¹ r = m - n`). Returns σ.
+    fn set_whitening(&mut self, robot_sd: &Vector6<f64>) -> Result<f64, CalibError> {
+        self.whitening = None;
+        let lin = self
+            .linearise(true, false)
+            .ok_or_else(|| CalibError::Optimisation("a corner went behind its camera".into()))?;
+        struct Block {
+            q: DMatrix<f64>,
+            s2: Vector6<f64>,
+            r2: f64,
+            p2: Vector6<f64>,
+        }
+        let mut blocks = Vec::with_capacity(lin.robot_blocks.len());
+        for (start, g) in &lin.robot_blocks {
+            let rows = g.nrows();
+            let rc = lin.residuals.rows(*start, rows);
+            if rows < 6 {
+                blocks.push(Block {
+                    q: DMatrix::zeros(0, 6),
+                    s2: Vector6::zeros(),
+                    r2: rc.norm_squared(),
+                    p2: Vector6::zeros(),
+                });
+                continue;
+            }
+            let mut b = g.clone();
+            for (k, mut col) in b.column_iter_mut().enumerate() {
+                col *= robot_sd[k];
+            }
+            let svd = b.svd(true, false);
+            let q = svd
+                .u
+                .ok_or_else(|| CalibError::Optimisation("SVD failed".into()))?;
+            let s2 = Vector6::from_iterator(svd.singular_values.iter().map(|v| v * v));
+            let p = q.transpose() * rc;
+            let p2 = Vector6::from_iterator(p.iter().map(|v| v * v));
+            blocks.push(Block {
+                q,
+                s2,
+                r2: rc.norm_squared(),
+                p2,
+            });
+        }
+        let dof = (lin.residuals.len() - self.n_params()) as f64;
+        let chi2 = |sigma2: f64| -> f64 {
+            blocks
+                .iter()
+                .map(|b| {
+                    (b.r2
+                        - (0..6)
+                            .map(|i| b.s2[i] / (sigma2 + b.s2[i]) * b.p2[i])
+                            .sum::<f64>())
+                        / sigma2
+                })
+                .sum()
+        };
+        // chi2 falls as sigma grows: bisect on log sigma in [0.01, 100] px.
+        let (mut lo, mut hi) = (0.01f64.ln(), 100f64.ln());
+        let sigma = if chi2((lo.exp()).powi(2)) <= dof {
+            lo.exp()
+        } else {
+            for _ in 0..60 {
+                let mid = 0.5 * (lo + hi);
+                if chi2(mid.exp().powi(2)) > dof {
+                    lo = mid
+                } else {
+                    hi = mid
+                }
+            }
+            (0.5 * (lo + hi)).exp()
+        };
+        self.whitening = Some(
+            blocks
+                .into_iter()
+                .map(|b| Whitening {
+                    d: b.s2.map(|s2| sigma / (sigma * sigma + s2).sqrt() - 1.0),
+                    q: b.q,
+                    inv_sigma: 1.0 / sigma,
+                })
+                .collect(),
+        );
+        Ok(sigma)
+    }
+
+    /// Makes the current estimate the new reference (parameters back to zero).
+    fn recentre(&mut self) {
+        self.reference_poses = (0..self.reference_poses.len())
+            .map(|b| self.pose(b))
+            .collect();
+        self.reference_cameras = (0..self.reference_cameras.len())
+            .map(|c| self.camera(c))
+            .collect();
+        self.params = DVector::zeros(self.n_params());
+    }
+
+    /// Per-corner residual norms (unweighted) for all corners, inliers or not.
+    fn corner_errors(&self) -> Vec<Vec<f64>> {
+        let poses: Vec<Iso3> = (0..self.reference_poses.len())
+            .map(|b| self.pose(b))
+            .collect();
+        let cameras: Vec<CameraModel> = (0..self.reference_cameras.len())
+            .map(|c| self.camera(c))
+            .collect();
+        self.captures
+            .iter()
+            .map(|cap| {
+                let ref_from_camera = match cap.ref_from_base {
+                    Some(z) => poses[z] * cap.capture.base_from_flange * poses[cap.hand_eye],
+                    None => cap.capture.base_from_flange * poses[cap.hand_eye],
+                };
+                let camera_from_target = ref_from_camera.inverse() * poses[cap.target];
+                cap.capture
+                    .target_points
+                    .iter()
+                    .zip(&cap.capture.pixels)
+                    .map(|(p, uv)| {
+                        cameras[cap.camera]
+                            .project(&(camera_from_target * p))
+                            .map_or(f64::INFINITY, |q| (q - uv).norm())
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for Engine {
+    type ResidualStorage = VecStorage<f64, Dyn, U1>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, x: &DVector<f64>) {
+        self.params.copy_from(x);
+    }
+
+    fn params(&self) -> DVector<f64> {
+        self.params.clone()
+    }
+
+    fn residuals(&self) -> Option<DVector<f64>> {
+        self.linearise(false, true).map(|l| l.residuals)
+    }
+
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        self.linearise(true, true).map(|l| l.jacobian)
+    }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn minimise(engine: Engine) -> Result<Engine, CalibError> {
+    // Relative tolerances of 1e-7 stop far below the noise (parameters move by
+    // ~1e-7 of their size) and save a third of the evaluations of the defaults.
+    let (engine, report) = LevenbergMarquardt::new()
+        .with_ftol(1e-7)
+        .with_xtol(1e-7)
+        .with_patience(200)
+        .minimize(engine);
+    tracing::trace!(termination = ?report.termination, evaluations = report.number_of_evaluations, "lm");
+    if !report.termination.was_successful()
+        && !matches!(
+            report.termination,
+            levenberg_marquardt::TerminationReason::LostPatience
+        )
+    {
+        return Err(CalibError::Optimisation(format!(
+            "{:?}",
+            report.termination
+        )));
+    }
+    if engine.params.iter().any(|v| !v.is_finite()) {
+        return Err(CalibError::Optimisation(
+            "parameters became non-finite".into(),
+        ));
+    }
+    Ok(engine)
+}
+
+/// Runs the joint problem: Huber rounds, MAD rejection, final fit, covariance.
+pub(crate) fn solve(
+    poses: Vec<Iso3>,
+    cameras: Vec<CameraModel>,
+    captures: Vec<CaptureModel>,
+    options: &RefineOptions,
+    optimise: bool,
+) -> Result<EngineSolution, CalibError> {
+    let n_corners: usize = captures.iter().map(|c| c.capture.pixels.len()).sum();
+    for (i, c) in captures.iter().enumerate() {
+        if c.capture.pixels.len() != c.capture.target_points.len() {
+            return Err(CalibError::Inconsistent(format!(
+                "capture {i}: {} pixels but {} target points",
+                c.capture.pixels.len(),
+                c.capture.target_points.len()
+            )));
+        }
+        if c.capture
+            .pixels
+            .iter()
+            .any(|p| !p.x.is_finite() || !p.y.is_finite())
+            || c.capture
+                .target_points
+                .iter()
+                .any(|p| !p.coords.iter().all(|v| v.is_finite()))
+        {
+            return Err(CalibError::NonFinite(format!("capture {i} corners")));
+        }
+    }
+    let sqrt_weights = captures
+        .iter()
+        .map(|c| vec![1.0; c.capture.pixels.len()])
+        .collect();
+    let mut engine = Engine {
+        reference_poses: poses,
+        reference_cameras: cameras,
+        refine_intrinsics: options.refine_intrinsics,
+        captures,
+        sqrt_weights,
+        whitening: None,
+        params: DVector::zeros(0),
+    };
+    engine.params = DVector::zeros(engine.n_params());
+    if engine.n_residuals() <= engine.n_params() {
+        return Err(CalibError::TooFewCaptures {
+            got: n_corners,
+            need: engine.n_params() / 2 + 1,
+        });
+    }
+
+    // Rounds 1-2: Huber-weighted fits, each re-centred.
+    for _ in 0..if optimise { 2 } else { 0 } {
+        let errors = engine.corner_errors();
+        let mut all: Vec<f64> = errors
+            .iter()
+            .flatten()
+            .copied()
+            .filter(|e| e.is_finite())
+            .collect();
+        let sigma = (1.4826 * median(&mut all)).max(1e-3) / 1.1774; // median of a 2-D Rayleigh norm = 1.1774 sigma
+        let thr = options.huber_k * sigma * std::f64::consts::SQRT_2;
+        engine.sqrt_weights = errors
+            .iter()
+            .map(|es| {
+                es.iter()
+                    .map(|e| if *e <= thr { 1.0 } else { (thr / e).sqrt() })
+                    .collect()
+            })
+            .collect();
+        engine = minimise(engine)?;
+        engine.recentre();
+    }
+
+    // MAD rejection on the corner residual norms.
+    let errors = engine.corner_errors();
+    let mut all: Vec<f64> = errors
+        .iter()
+        .flatten()
+        .copied()
+        .filter(|e| e.is_finite())
+        .collect();
+    let med = median(&mut all.clone());
+    let mut dev: Vec<f64> = all.iter_mut().map(|e| (*e - med).abs()).collect();
+    let mad = median(&mut dev);
+    let limit = med + options.mad_k * 1.4826 * mad.max(1e-6);
+    for (cap, es) in engine.captures.iter_mut().zip(&errors) {
+        for (inl, e) in cap.inlier.iter_mut().zip(es) {
+            *inl = *e <= limit;
+        }
+        if cap.inlier.iter().filter(|v| **v).count() < options.min_corners_per_capture {
+            cap.inlier.iter_mut().for_each(|v| *v = false);
+        }
+    }
+    if engine.n_residuals() <= engine.n_params() {
+        return Err(CalibError::TooFewInliers(format!(
+            "{} residuals left for {} parameters (limit {limit:.3} px)",
+            engine.n_residuals(),
+            engine.n_params()
+        )));
+    }
+    engine
+        .sqrt_weights
+        .iter_mut()
+        .for_each(|w| w.iter_mut().for_each(|v| *v = 1.0));
+    let rn = &options.robot_noise;
+    let robot_sd = Vector6::new(
+        rn.sigma_r_rad,
+        rn.sigma_r_rad,
+        rn.sigma_r_rad,
+        rn.sigma_t_m,
+        rn.sigma_t_m,
+        rn.sigma_t_m,
+    );
+    // Final fits on the inliers, with each capture's residuals whitened by their
+    // covariance (generalised least squares); re-centred so the covariance's
+    // Jacobian is exact at the solution.
+    if optimise {
+        for _ in 0..2 {
+            engine.set_whitening(&robot_sd)?;
+            engine = minimise(engine)?;
+            engine.recentre();
+        }
+    }
+    let sigma = engine.set_whitening(&robot_sd)?;
+    let lin = engine
+        .linearise(true, false)
+        .ok_or_else(|| CalibError::Optimisation("a corner went behind its camera".into()))?;
+    let a = lin.jacobian.transpose() * &lin.jacobian;
+    let mut covariance = a.try_inverse().ok_or_else(|| {
+        CalibError::Optimisation(
+            "normal matrix is singular: the data do not determine every unknown".into(),
+        )
+    })?;
+    covariance = (&covariance + covariance.transpose()) * 0.5;
+    let m_raw = engine.n_residuals();
+    let errors = engine.corner_errors();
+    let per_capture = engine
+        .captures
+        .iter()
+        .zip(&errors)
+        .map(|(cap, es)| {
+            let inl: Vec<f64> = es
+                .iter()
+                .zip(&cap.inlier)
+                .filter(|(_, i)| **i)
+                .map(|(e, _)| *e)
+                .collect();
+            let rms = if inl.is_empty() {
+                f64::NAN
+            } else {
+                (inl.iter().map(|e| e * e).sum::<f64>() / inl.len() as f64).sqrt()
+            };
+            (rms, cap.inlier.iter().filter(|v| !**v).count())
+        })
+        .collect();
+    Ok(EngineSolution {
+        poses: engine.reference_poses.clone(),
+        cameras: engine.reference_cameras.clone(),
+        covariance,
+        sigma_px: sigma,
+        rms_px: {
+            let inl: Vec<f64> = errors
+                .iter()
+                .zip(&engine.captures)
+                .flat_map(|(es, cap)| {
+                    es.iter()
+                        .zip(&cap.inlier)
+                        .filter(|(_, i)| **i)
+                        .map(|(e, _)| *e)
+                })
+                .collect();
+            (inl.iter().map(|e| e * e).sum::<f64>() / (m_raw as f64 / 2.0)).sqrt()
+        },
+        per_capture,
+    })
+}
+
+/// The result of refining one robot's hand-eye.
+#[derive(Debug, Clone)]
+pub struct HandEyeEstimate {
+    pub flange_from_camera: Iso3,
+    pub base_from_target: Iso3,
+    /// The camera after refinement (unchanged unless intrinsics were refined).
+    pub camera: CameraModel,
+    /// Covariance of the left perturbation of `flange_from_camera` (in `flange`).
+    pub flange_from_camera_covariance: Matrix6<f64>,
+    /// Covariance of the left perturbation of `base_from_target` (in `base`).
+    pub base_from_target_covariance: Matrix6<f64>,
+    /// Estimated corner noise (px, per axis).
+    pub sigma_px: f64,
+    /// RMS of the inlier corner residual norms (px).
+    pub rms_px: f64,
+    /// Per capture: RMS residual norm (px) and number of rejected corners.
+    pub per_capture: Vec<(f64, usize)>,
+}
+
+/// Refines one robot's hand-eye and board pose from all captures' corners.
+/// `initial` is `(flange_from_camera, base_from_target)`, typically a closed form.
+pub fn refine_hand_eye(
+    camera: &CameraModel,
+    captures: &[BoardCapture],
+    initial: (Iso3, Iso3),
+    options: &RefineOptions,
+) -> Result<HandEyeEstimate, CalibError> {
+    hand_eye_problem(camera, captures, initial, options, true)
+}
+
+/// Evaluates residuals, outliers and the covariance of a given (closed-form)
+/// estimate without moving it: how sure a closed form may be, in the same terms
+/// as the refinement.
+pub fn evaluate_hand_eye(
+    camera: &CameraModel,
+    captures: &[BoardCapture],
+    estimate: (Iso3, Iso3),
+    options: &RefineOptions,
+) -> Result<HandEyeEstimate, CalibError> {
+    hand_eye_problem(camera, captures, estimate, options, false)
+}
+
+fn hand_eye_problem(
+    camera: &CameraModel,
+    captures: &[BoardCapture],
+    initial: (Iso3, Iso3),
+    options: &RefineOptions,
+    optimise: bool,
+) -> Result<HandEyeEstimate, CalibError> {
+    if captures.len() < 3 {
+        return Err(CalibError::TooFewCaptures {
+            got: captures.len(),
+            need: 3,
+        });
+    }
+    let models = captures
+        .iter()
+        .map(|c| CaptureModel {
+            capture: c.clone(),
+            hand_eye: 0,
+            ref_from_base: None,
+            target: 1,
+            camera: 0,
+            inlier: vec![true; c.pixels.len()],
+        })
+        .collect();
+    let sol = solve(
+        vec![initial.0, initial.1],
+        vec![camera.clone()],
+        models,
+        options,
+        optimise,
+    )?;
+    Ok(HandEyeEstimate {
+        flange_from_camera: sol.poses[0],
+        base_from_target: sol.poses[1],
+        camera: sol.cameras[0].clone(),
+        flange_from_camera_covariance: sol.covariance.fixed_view::<6, 6>(0, 0).into(),
+        base_from_target_covariance: sol.covariance.fixed_view::<6, 6>(6, 6).into(),
+        sigma_px: sol.sigma_px,
+        rms_px: sol.rms_px,
+        per_capture: sol.per_capture,
+    })
+}
+
+/// Mahalanobis distance squared of a 6-vector under a covariance.
+pub fn mahalanobis2(delta: &Vector6<f64>, cov: &Matrix6<f64>) -> Option<f64> {
+    cov.try_inverse()
+        .map(|inv| (delta.transpose() * inv * delta)[(0, 0)])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pose::{left_difference, pose_distance};
+    use crate::synth::{SynthConfig, random_robot};
+
+    fn captures_of(robot: &crate::synth::SynthRobot) -> Vec<BoardCapture> {
+        robot.board_captures()
+    }
+
+    fn perturbed_start(robot: &crate::synth::SynthRobot) -> (Iso3, Iso3) {
+        let d = Vector6::new(0.02, -0.03, 0.01, 0.01, -0.02, 0.015);
+        (
+            perturb_left(&d, &robot.flange_from_camera),
+            perturb_left(&(-d), &robot.base_from_target),
+        )
+    }
+
+    #[test]
+    fn recovers_truth_without_noise() {
+        let cfg = SynthConfig {
+            pixel_sigma: 0.0,
+            robot_sigma_t: 0.0,
+            robot_sigma_r: 0.0,
+            ..Default::default()
+        };
+        let robot = random_robot(7, &cfg).unwrap();
+        let est = refine_hand_eye(
+            &cfg.camera,
+            &captures_of(&robot),
+            perturbed_start(&robot),
+            &RefineOptions::default(),
+        )
+        .unwrap();
+        let (dt, da) = pose_distance(&est.flange_from_camera, &robot.flange_from_camera);
+        assert!(dt < 1e-9 && da < 1e-9, "{dt} {da}");
+        let (dt, da) = pose_distance(&est.base_from_target, &robot.base_from_target);
+        assert!(dt < 1e-9 && da < 1e-9, "{dt} {da}");
+    }
+
+    #[test]
+    fn refines_intrinsics_too() {
+        let cfg = SynthConfig {
+            robot_sigma_t: 0.0,
+            robot_sigma_r: 0.0,
+            pixel_sigma: 0.05,
+            ..Default::default()
+        };
+        let robot = random_robot(3, &cfg).unwrap();
+        let mut wrong = cfg.camera.clone();
+        wrong.fx += 4.0;
+        wrong.cy -= 3.0;
+        let opts = RefineOptions {
+            refine_intrinsics: true,
+            ..Default::default()
+        };
+        let est =
+            refine_hand_eye(&wrong, &captures_of(&robot), perturbed_start(&robot), &opts).unwrap();
+        assert!(
+            (est.camera.fx - cfg.camera.fx).abs() < 0.5,
+            "fx {}",
+            est.camera.fx
+        );
+        assert!(
+            (est.camera.cy - cfg.camera.cy).abs() < 0.5,
+            "cy {}",
+            est.camera.cy
+        );
+        let (dt, _) = pose_distance(&est.flange_from_camera, &robot.flange_from_camera);
+        assert!(dt < 1e-3, "{dt}");
+    }
+
+    #[test]
+    fn rejects_outlier_corners() {
+        let cfg = SynthConfig::default();
+        let robot = random_robot(11, &cfg).unwrap();
+        let mut caps = captures_of(&robot);
+        // 20 corners moved by 15 px: detector blunders.
+        for (i, cap) in caps.iter_mut().enumerate().take(10) {
+            cap.pixels[i].x += 15.0;
+            cap.pixels[i + 20].y -= 15.0;
+        }
+        let est = refine_hand_eye(
+            &cfg.camera,
+            &caps,
+            perturbed_start(&robot),
+            &RefineOptions::default(),
+        )
+        .unwrap();
+        let rejected: usize = est.per_capture.iter().map(|(_, n)| n).sum();
+        assert!(rejected >= 20, "only {rejected} rejected");
+        let (dt, da) = pose_distance(&est.flange_from_camera, &robot.flange_from_camera);
+        assert!(dt < 0.5e-3 && da < 0.05f64.to_radians(), "{dt} {da}");
+    }
+
+    #[test]
+    fn too_few_captures_is_an_error() {
+        let robot = random_robot(1, &SynthConfig::default()).unwrap();
+        let caps = captures_of(&robot);
+        let err = refine_hand_eye(
+            &SynthConfig::default().camera,
+            &caps[..2],
+            perturbed_start(&robot),
+            &RefineOptions::default(),
+        )
+        .unwrap_err();
+        assert!(matches!(err, CalibError::TooFewCaptures { .. }));
+    }
+
+    #[test]
+    fn nan_pixel_is_an_error_not_a_number() {
+        let robot = random_robot(1, &SynthConfig::default()).unwrap();
+        let mut caps = captures_of(&robot);
+        caps[3].pixels[5].x = f64::NAN;
+        let err = refine_hand_eye(
+            &SynthConfig::default().camera,
+            &caps,
+            perturbed_start(&robot),
+            &RefineOptions::default(),
+        )
+        .unwrap_err();
+        assert!(matches!(err, CalibError::NonFinite(_)));
+    }
+
+    /// The covariance is calibrated: over 100 random problems with realistic noise
+    /// the true hand-eye error lies inside the 95% ellipsoid 90-99% of the time.
+    #[test]
+    fn covariance_is_calibrated_over_100_problems() {
+        let cfg = SynthConfig::default();
+        let chi2_6_95 = 12.5916;
+        let mut inside = 0;
+        let n = 100;
+        for seed in 0..n {
+            let robot = random_robot(1000 + seed, &cfg).unwrap();
+            let est = refine_hand_eye(
+                &cfg.camera,
+                &captures_of(&robot),
+                perturbed_start(&robot),
+                &RefineOptions::default(),
+            )
+            .unwrap();
+            let d = left_difference(&est.flange_from_camera, &robot.flange_from_camera);
+            let m2 = mahalanobis2(&d, &est.flange_from_camera_covariance).unwrap();
+            if m2 <= chi2_6_95 {
+                inside += 1;
+            }
+        }
+        let frac = inside as f64 / n as f64;
+        eprintln!("hand-eye 95% ellipsoid coverage: {frac}");
+        assert!((0.90..=0.99).contains(&frac), "coverage {frac}");
+    }
+}

@@ -1,1 +1,295 @@
-//! (in progress)
+//! Reads, validates and writes the `b2b-dataset/1` interchange format
+//! (`shared/dataset-format.md`).
+//!
+//! This format is the contract with the outside world: real recordings, public datasets
+//! and independently generated test data all arrive in it, and every tool of the project
+//! reads it through this crate. The design follows from that:
+//!
+//! * **Validate everything at the door.** [`Dataset::load`] checks every file, row and
+//!   value it reads, so the solvers downstream can trust their input and never have to
+//!   guess whether a strange result comes from the data. Millimetres where metres are
+//!   expected, a quaternion in `w, x, y, z` order, a renamed image: all of these produce
+//!   plausible-looking but wrong calibrations if they get through, so they are errors here.
+//! * **Errors say where.** Every problem is a variant of [`DatasetError`] whose message
+//!   names the full path of the file, the 1-based data row and line, and the column or
+//!   field. Loading stops at the first problem. No input makes the loader panic.
+//! * **The answer is kept apart.** [`Dataset`] holds what a calibration may see. The
+//!   ground truth and other tools' results are read only by [`load_ground_truth`] and
+//!   [`load_reference`], which a calibration has no reason to call.
+//! * **Bit-for-bit round trips.** Numbers are written in Rust's shortest round-trip form
+//!   and read back exactly; unit quaternions are kept as written (see [`pose`]'s policy).
+//!   A dataset written by [`Dataset::write`] and loaded again is equal to the original,
+//!   which makes recorded data, generated data and their reproductions comparable.
+//! * **The writer applies the reader's rules** (except that files exist, since images
+//!   are copied by the caller), so the project cannot produce a dataset it would reject.
+//!
+//! Poses are `nalgebra::Isometry3<f64>` named `a_from_b` for the format's `T_a_b`.
+
+mod captures;
+mod error;
+mod manifest;
+pub mod pose;
+mod table;
+mod truth;
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+pub use captures::{
+    CAMERA_POSE_COLUMNS, CAPTURE_COLUMNS, Capture, IMAGE_EXTENSIONS, RobotData, TOUCH_COLUMNS,
+    TouchPair, read_touch_points,
+};
+pub use error::{DatasetError, Location};
+pub use manifest::{
+    CameraIntrinsics, DIST_LENGTHS, Manifest, RobotManifest, TARGET_KINDS, Target, dictionary_size,
+};
+pub use truth::{
+    GroundTruth, Reference, load_ground_truth, load_reference, write_ground_truth, write_reference,
+};
+
+/// The `format` value of `dataset.json`.
+pub const FORMAT: &str = "b2b-dataset/1";
+/// The manifest's file name.
+pub const MANIFEST_FILE: &str = "dataset.json";
+/// Each robot folder's capture list.
+pub const CAPTURES_FILE: &str = "captures.csv";
+/// The optional touch-point list.
+pub const TOUCH_POINTS_FILE: &str = "touch_points.csv";
+/// The optional ground truth.
+pub const GROUND_TRUTH_FILE: &str = "ground_truth.json";
+/// The optional published result of another tool.
+pub const REFERENCE_FILE: &str = "reference.json";
+/// Largest coordinate, in metres, that is accepted as metres. A robot cell is a few
+/// metres across; a larger number is almost certainly millimetres.
+pub const MAX_COORDINATE_M: f64 = 10.0;
+
+/// A loaded dataset: everything a calibration may see.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dataset {
+    /// The dataset folder (absolute after [`Dataset::load`]).
+    pub root: PathBuf,
+    pub manifest: Manifest,
+    /// One entry per robot of the manifest, in the manifest's order.
+    pub robots: Vec<RobotData>,
+    /// `touch_points.csv`, when the dataset has one.
+    pub touch_points: Option<Vec<TouchPair>>,
+}
+
+impl Dataset {
+    /// Reads `dataset.json`, every robot's `captures.csv` and `touch_points.csv` from
+    /// `dir`, and validates all of it, including that every named image exists. Never
+    /// reads `ground_truth.json` or `reference.json`.
+    pub fn load(dir: &Path) -> Result<Dataset, DatasetError> {
+        let root = absolute(dir);
+        let manifest = Manifest::load(&root)?;
+        let manifest_file = root.join(MANIFEST_FILE);
+        if let Target::Multimarker { config, .. } = &manifest.target {
+            let full = root.join(config);
+            if !full.is_file() {
+                return Err(DatasetError::InvalidTarget {
+                    at: Location::field(&manifest_file, "target.config"),
+                    reason: format!("multimarker file {} does not exist", full.display()),
+                });
+            }
+        }
+        let mut robots = Vec::with_capacity(manifest.robots.len());
+        for (i, robot) in manifest.robots.iter().enumerate() {
+            let folder = root.join(&robot.id);
+            if !folder.is_dir() {
+                return Err(DatasetError::MissingRobotFolder {
+                    at: Location::field(&manifest_file, format!("robots[{i}].id")),
+                    folder,
+                });
+            }
+            let captures = captures::read_captures(&folder.join(CAPTURES_FILE), robot, &folder)?;
+            robots.push(RobotData {
+                id: robot.id.clone(),
+                captures,
+            });
+        }
+        let touch_file = root.join(TOUCH_POINTS_FILE);
+        let touch_points = if touch_file.exists() {
+            if manifest.robots.len() < 2 {
+                return Err(DatasetError::TouchPointsNeedTwoRobots {
+                    file: touch_file,
+                    robots: manifest.robots.len(),
+                });
+            }
+            Some(captures::read_touch_points(&touch_file)?)
+        } else {
+            None
+        };
+        Ok(Dataset {
+            root,
+            manifest,
+            robots,
+            touch_points,
+        })
+    }
+
+    /// Writes `dataset.json`, every robot's `captures.csv` and `touch_points.csv` into
+    /// `dir` (creating folders as needed; `self.root` is not used). Everything is checked
+    /// first with the reader's rules, so an invalid dataset writes nothing. Capture rows
+    /// are numbered by position. Without touch points, a `touch_points.csv` left in `dir`
+    /// is removed, so that the folder describes exactly this dataset. Images are not
+    /// written: the caller copies them to the paths the captures name.
+    pub fn write(&self, dir: &Path) -> Result<(), DatasetError> {
+        let root = absolute(dir);
+        let manifest_file = root.join(MANIFEST_FILE);
+        self.manifest.validate(&manifest_file)?;
+        let ids: Vec<&str> = self.robots.iter().map(|r| r.id.as_str()).collect();
+        let expected: Vec<&str> = self.manifest.robots.iter().map(|r| r.id.as_str()).collect();
+        if ids != expected {
+            return Err(DatasetError::RobotMismatch {
+                at: Location::field(&manifest_file, "robots"),
+                reason: format!(
+                    "the manifest lists robots {expected:?} but the data has {ids:?}, in that order"
+                ),
+            });
+        }
+        let mut files: Vec<(PathBuf, Vec<u8>)> = vec![];
+        for (robot, data) in self.manifest.robots.iter().zip(&self.robots) {
+            let file = root.join(&robot.id).join(CAPTURES_FILE);
+            let mut checker = captures::CaptureChecker::new(&file, robot);
+            let with_camera = data.captures.iter().any(|c| c.camera_from_target.is_some());
+            let mut header: Vec<&str> = CAPTURE_COLUMNS.to_vec();
+            if with_camera {
+                header.extend(CAMERA_POSE_COLUMNS);
+            }
+            let mut rows = Vec::with_capacity(data.captures.len());
+            for (i, c) in data.captures.iter().enumerate() {
+                checker.check(i + 1, None, c)?;
+                rows.push(captures::capture_cells(&file, i + 1, c, with_camera)?);
+            }
+            let bytes = table::render(&file, &header, &rows)?;
+            files.push((file, bytes));
+        }
+        let touch_file = root.join(TOUCH_POINTS_FILE);
+        if let Some(pairs) = &self.touch_points {
+            if self.manifest.robots.len() < 2 {
+                return Err(DatasetError::TouchPointsNeedTwoRobots {
+                    file: touch_file,
+                    robots: self.manifest.robots.len(),
+                });
+            }
+            let mut rows = Vec::with_capacity(pairs.len());
+            for (i, pair) in pairs.iter().enumerate() {
+                captures::check_touch(&touch_file, i + 1, None, pair)?;
+                rows.push(
+                    captures::touch_numbers(pair)
+                        .map(pose::format_number)
+                        .to_vec(),
+                );
+            }
+            files.push((
+                touch_file.clone(),
+                table::render(&touch_file, &TOUCH_COLUMNS, &rows)?,
+            ));
+        }
+        let mut json = serde_json::to_string_pretty(&self.manifest)
+            .map_err(|e| DatasetError::json(&manifest_file, e))?;
+        json.push('\n');
+        files.push((manifest_file, json.into_bytes()));
+
+        for (file, bytes) in &files {
+            if let Some(parent) = file.parent() {
+                fs::create_dir_all(parent).map_err(|e| DatasetError::io(parent, e))?;
+            }
+            write_atomic(file, bytes)?;
+        }
+        if self.touch_points.is_none() && touch_file.is_file() {
+            fs::remove_file(&touch_file).map_err(|e| DatasetError::io(&touch_file, e))?;
+        }
+        Ok(())
+    }
+
+    /// The data of robot `id`.
+    pub fn robot(&self, id: &str) -> Option<&RobotData> {
+        self.robots.iter().find(|r| r.id == id)
+    }
+
+    /// The manifest entry (camera, depth unit) of robot `id`.
+    pub fn robot_manifest(&self, id: &str) -> Option<&RobotManifest> {
+        self.manifest.robot(id)
+    }
+
+    /// The folder of robot `id`, absolute.
+    pub fn robot_dir(&self, id: &str) -> PathBuf {
+        absolute(&self.root.join(id))
+    }
+
+    /// The image of a capture of robot `robot`, absolute; `None` for a pose-only row.
+    pub fn image_path(&self, robot: &str, capture: &Capture) -> Option<PathBuf> {
+        capture
+            .image
+            .as_ref()
+            .map(|p| self.robot_dir(robot).join(p))
+    }
+
+    /// The depth image of a capture of robot `robot`, absolute, if it has one.
+    pub fn depth_path(&self, robot: &str, capture: &Capture) -> Option<PathBuf> {
+        capture
+            .depth
+            .as_ref()
+            .map(|p| self.robot_dir(robot).join(p))
+    }
+
+    /// The multimarker file of a multimarker target, absolute.
+    pub fn multimarker_config_path(&self) -> Option<PathBuf> {
+        match &self.manifest.target {
+            Target::Multimarker { config, .. } => Some(absolute(&self.root.join(config))),
+            _ => None,
+        }
+    }
+}
+
+/// `path` made absolute without touching the file system beyond the current directory.
+pub(crate) fn absolute(path: &Path) -> PathBuf {
+    std::path::absolute(path).unwrap_or_else(|_| path.to_owned())
+}
+
+pub(crate) fn read_bytes(file: &Path, what: &'static str) -> Result<Vec<u8>, DatasetError> {
+    match fs::read(file) {
+        Ok(bytes) => Ok(bytes),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(DatasetError::MissingFile {
+            file: file.to_owned(),
+            what,
+        }),
+        Err(e) => Err(DatasetError::io(file, e)),
+    }
+}
+
+pub(crate) fn read_text(file: &Path, what: &'static str) -> Result<String, DatasetError> {
+    let bytes = read_bytes(file, what)?;
+    String::from_utf8(bytes).map_err(|e| {
+        DatasetError::io(
+            file,
+            std::io::Error::new(std::io::ErrorKind::InvalidData, format!("not UTF-8: {e}")),
+        )
+    })
+}
+
+/// Parses JSON text, naming the offending field in errors; `file` is only used in errors.
+pub(crate) fn parse_json<T: serde::de::DeserializeOwned>(
+    text: &str,
+    file: &Path,
+) -> Result<T, DatasetError> {
+    let mut de = serde_json::Deserializer::from_str(text);
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let field = e.path().to_string();
+        DatasetError::json_at(file, field, e.into_inner())
+    })?;
+    de.end().map_err(|e| DatasetError::json(file, e))?;
+    Ok(value)
+}
+
+/// Writes through a temporary file and a rename, so a crash never leaves half a file.
+pub(crate) fn write_atomic(file: &Path, bytes: &[u8]) -> Result<(), DatasetError> {
+    let name = file
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = file.with_file_name(format!(".{name}.tmp"));
+    fs::write(&tmp, bytes).map_err(|e| DatasetError::io(&tmp, e))?;
+    fs::rename(&tmp, file).map_err(|e| DatasetError::io(file, e))
+}

@@ -32,7 +32,11 @@ pub enum ProtocolError {
     NonFinite { field: String, value: f64 },
     /// A quaternion whose norm is too far from 1 to be a rotation.
     #[error("{field}: quaternion norm {norm:.6} is not 1 (tolerance {tolerance})")]
-    NotUnitQuaternion { field: String, norm: f64, tolerance: f64 },
+    NotUnitQuaternion {
+        field: String,
+        norm: f64,
+        tolerance: f64,
+    },
     /// A covariance that is not symmetric positive semi-definite or not finite.
     #[error("{field}: {reason}")]
     BadCovariance { field: String, reason: String },
@@ -49,19 +53,28 @@ pub struct Pose {
 
 impl Pose {
     /// The identity transform.
-    pub const IDENTITY: Pose = Pose { t: [0.0; 3], q: [0.0, 0.0, 0.0, 1.0] };
+    pub const IDENTITY: Pose = Pose {
+        t: [0.0; 3],
+        q: [0.0, 0.0, 0.0, 1.0],
+    };
 
     /// Converts to an isometry, checking that every number is finite and that the
     /// quaternion is a rotation; `field` names the value in the error.
     pub fn to_isometry(&self, field: &str) -> Result<Isometry3<f64>, ProtocolError> {
         for (i, v) in self.t.iter().enumerate() {
             if !v.is_finite() {
-                return Err(ProtocolError::NonFinite { field: format!("{field}.t[{i}]"), value: *v });
+                return Err(ProtocolError::NonFinite {
+                    field: format!("{field}.t[{i}]"),
+                    value: *v,
+                });
             }
         }
         for (i, v) in self.q.iter().enumerate() {
             if !v.is_finite() {
-                return Err(ProtocolError::NonFinite { field: format!("{field}.q[{i}]"), value: *v });
+                return Err(ProtocolError::NonFinite {
+                    field: format!("{field}.q[{i}]"),
+                    value: *v,
+                });
             }
         }
         let [x, y, z, w] = self.q;
@@ -88,7 +101,10 @@ impl Pose {
         if q.w < 0.0 {
             q = -q;
         }
-        Pose { t: [t.x, t.y, t.z], q: [q.i, q.j, q.k, q.w] }
+        Pose {
+            t: [t.x, t.y, t.z],
+            q: [q.i, q.j, q.k, q.w],
+        }
     }
 }
 
@@ -105,25 +121,25 @@ pub type Covariance6 = [[f64; 6]; 6];
 /// Checks a covariance for finiteness, symmetry and a non-negative diagonal.
 pub fn validate_covariance(field: &str, c: &Covariance6) -> Result<(), ProtocolError> {
     let scale = c.iter().flatten().fold(1.0f64, |m, v| m.max(v.abs()));
-    for i in 0..6 {
-        for j in 0..6 {
-            if !c[i][j].is_finite() {
+    for (i, row) in c.iter().enumerate() {
+        for (j, v) in row.iter().enumerate() {
+            if !v.is_finite() {
                 return Err(ProtocolError::NonFinite {
                     field: format!("{field}[{i}][{j}]"),
-                    value: c[i][j],
+                    value: *v,
                 });
             }
-            if (c[i][j] - c[j][i]).abs() > 1e-12 * scale {
+            if (v - c[j][i]).abs() > 1e-12 * scale {
                 return Err(ProtocolError::BadCovariance {
                     field: field.to_owned(),
                     reason: format!("not symmetric at [{i}][{j}]"),
                 });
             }
         }
-        if c[i][i] < 0.0 {
+        if row[i] < 0.0 {
             return Err(ProtocolError::BadCovariance {
                 field: field.to_owned(),
-                reason: format!("negative variance {} at [{i}][{i}]", c[i][i]),
+                reason: format!("negative variance {} at [{i}][{i}]", row[i]),
             });
         }
     }
@@ -218,7 +234,11 @@ pub struct HandEyeResult {
     /// Over `[rx, ry, rz, tx, ty, tz]` applied on the left of `T_flange_camera`.
     pub covariance: Covariance6,
     /// `T_base_target` estimated together with the hand-eye, when the method gives it.
-    #[serde(rename = "T_base_target", default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        rename = "T_base_target",
+        default,
+        skip_serializing_if = "Option::is_none"
+    )]
     pub base_from_target: Option<Pose>,
     pub reprojection_rms_px: f64,
     pub per_capture: Vec<CaptureResidual>,
@@ -257,15 +277,24 @@ mod tests {
 
     #[test]
     fn non_unit_quaternion_is_rejected_with_field_name() {
-        let p = Pose { t: [0.0; 3], q: [0.0, 0.0, 0.0, 2.0] };
+        let p = Pose {
+            t: [0.0; 3],
+            q: [0.0, 0.0, 0.0, 2.0],
+        };
         let err = p.to_isometry("hand_eye.robot1").unwrap_err();
         assert!(err.to_string().contains("hand_eye.robot1.q"), "{err}");
     }
 
     #[test]
     fn nan_translation_is_rejected() {
-        let p = Pose { t: [0.0, f64::NAN, 0.0], q: [0.0, 0.0, 0.0, 1.0] };
-        assert!(matches!(p.to_isometry("T").unwrap_err(), ProtocolError::NonFinite { .. }));
+        let p = Pose {
+            t: [0.0, f64::NAN, 0.0],
+            q: [0.0, 0.0, 0.0, 1.0],
+        };
+        assert!(matches!(
+            p.to_isometry("T").unwrap_err(),
+            ProtocolError::NonFinite { .. }
+        ));
     }
 
     #[test]

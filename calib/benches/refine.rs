@@ -1,0 +1,60 @@
+//! The joint refinements on realistic problem sizes.
+//!
+//! Goal (issue: foundation): the base-to-base refinement over 2 x 30 captures x
+//! 54 corners in <= 50 ms. Run `cargo bench -p b2b-calib --bench refine` for
+//! numbers; `cargo test --benches` runs each once as a smoke test.
+
+use b2b_calib::base_to_base::{BaseToBaseInitial, perturb_initial, refine_base_to_base};
+use b2b_calib::pose::perturb_left;
+use b2b_calib::refine::{RefineOptions, refine_hand_eye};
+use b2b_calib::synth::{SynthConfig, random_robot, two_robots};
+use criterion::{Criterion, criterion_group, criterion_main};
+use nalgebra::Vector6;
+use std::hint::black_box;
+
+fn bench(c: &mut Criterion) {
+    let cfg = SynthConfig::default();
+    let robot = random_robot(1, &cfg).expect("synthetic problem");
+    let caps = robot.board_captures();
+    let d = Vector6::new(0.01, -0.01, 0.02, 0.005, 0.01, -0.005);
+    let start = (
+        perturb_left(&d, &robot.flange_from_camera),
+        perturb_left(&d, &robot.base_from_target),
+    );
+    let opts = RefineOptions::default();
+    c.bench_function("hand_eye_refine_30x54", |b| {
+        b.iter(|| {
+            refine_hand_eye(black_box(&cfg.camera), black_box(&caps), start, &opts)
+                .expect("converges")
+        })
+    });
+
+    let two = two_robots(2, &cfg).expect("synthetic problem");
+    let c1 = two.robots[0].board_captures();
+    let c2 = two.robots[1].board_captures();
+    let initial = perturb_initial(
+        &BaseToBaseInitial {
+            flange_from_camera: [
+                two.robots[0].flange_from_camera,
+                two.robots[1].flange_from_camera,
+            ],
+            base1_from_target: two.robots[0].base_from_target,
+            base1_from_base2: two.base1_from_base2,
+        },
+        &d,
+    );
+    c.bench_function("base_to_base_refine_2x30x54", |b| {
+        b.iter(|| {
+            refine_base_to_base(
+                [&cfg.camera, &cfg.camera],
+                [&c1, &c2],
+                black_box(&initial),
+                &opts,
+            )
+            .expect("converges")
+        })
+    });
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -1,0 +1,338 @@
+//! Synthetic calibration problems with known ground truth.
+//!
+//! Every solver in this crate is tested (and benchmarked) on problems made here:
+//! a board on a table, a camera on a flange by a known hand-eye, viewpoints spread
+//! over a hemisphere above the board, corner pixels with Gaussian noise and flange
+//! poses with the robot's own error. Generation is deterministic for a seed.
+
+use nalgebra::{Point2, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+
+use crate::camera::CameraModel;
+use crate::pose::perturb_left;
+use crate::{CalibError, Iso3};
+
+/// The inner corners of a checkerboard, `(i * square, j * square, 0)`, row by row.
+pub fn board_points(cols: usize, rows: usize, square: f64) -> Vec<Point3<f64>> {
+    (0..rows)
+        .flat_map(|j| {
+            (0..cols).map(move |i| Point3::new(i as f64 * square, j as f64 * square, 0.0))
+        })
+        .collect()
+}
+
+/// How to make a problem.
+#[derive(Debug, Clone)]
+pub struct SynthConfig {
+    pub captures: usize,
+    pub board_cols: usize,
+    pub board_rows: usize,
+    pub square_m: f64,
+    /// Standard deviation of corner pixels (px).
+    pub pixel_sigma: f64,
+    /// Robot flange error: translation (m) and rotation (rad) standard deviations.
+    pub robot_sigma_t: f64,
+    pub robot_sigma_r: f64,
+    /// Camera-to-board distance range (m).
+    pub distance: (f64, f64),
+    /// Largest tilt of the viewing direction from the board normal (rad).
+    pub max_tilt: f64,
+    pub camera: CameraModel,
+}
+
+impl Default for SynthConfig {
+    fn default() -> Self {
+        SynthConfig {
+            captures: 30,
+            board_cols: 9,
+            board_rows: 6,
+            square_m: 0.025,
+            pixel_sigma: 0.2,
+            robot_sigma_t: 0.05e-3,
+            robot_sigma_r: 0.01_f64.to_radians(),
+            distance: (0.35, 0.6),
+            max_tilt: 40f64.to_radians(),
+            camera: CameraModel {
+                width: 1280,
+                height: 720,
+                fx: 910.0,
+                fy: 910.0,
+                cx: 640.0,
+                cy: 360.0,
+                dist: [0.0; 8],
+            },
+        }
+    }
+}
+
+/// One robot's synthetic captures and the truth behind them.
+#[derive(Debug, Clone)]
+pub struct SynthRobot {
+    pub flange_from_camera: Iso3,
+    pub base_from_target: Iso3,
+    pub true_base_from_flange: Vec<Iso3>,
+    /// What the controller reports: the true pose with the robot's error.
+    pub base_from_flange: Vec<Iso3>,
+    /// Per capture: (board corner index, noisy pixel) for corners inside the image.
+    pub observations: Vec<Vec<(usize, Point2<f64>)>>,
+    /// Per capture: the board pose fitted to the noisy pixels (what PnP would give).
+    pub camera_from_target: Vec<Iso3>,
+    pub board: Vec<Point3<f64>>,
+}
+
+fn gauss(rng: &mut StdRng) -> f64 {
+    // Box-Muller: enough for test noise, and keeps rand_distr out of the library.
+    let u1: f64 = rng.random::<f64>().max(1e-300);
+    let u2: f64 = rng.random();
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+/// A random rigid transform: rotation angle up to `max_angle`, translation in a box.
+pub fn random_pose(rng: &mut StdRng, max_angle: f64, t_box: f64) -> Iso3 {
+    let axis = Vector3::new(gauss(rng), gauss(rng), gauss(rng)).normalize();
+    let angle = rng.random_range(0.0..max_angle);
+    let t = Vector3::new(
+        rng.random_range(-t_box..t_box),
+        rng.random_range(-t_box..t_box),
+        rng.random_range(-t_box..t_box),
+    );
+    Iso3::from_parts(
+        Translation3::from(t),
+        UnitQuaternion::from_scaled_axis(axis * angle),
+    )
+}
+
+/// A camera pose looking at `centre` from `eye`, with a roll about the view axis.
+fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, roll: f64) -> Iso3 {
+    let z = (centre - eye).normalize();
+    let helper = if z.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let x = helper.cross(&z).normalize();
+    let y = z.cross(&x);
+    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
+    let r =
+        UnitQuaternion::from_matrix(&m) * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), roll);
+    Iso3::from_parts(Translation3::from(eye.coords), r)
+}
+
+/// Makes one robot's problem with the given truth.
+pub fn make_robot(
+    rng: &mut StdRng,
+    cfg: &SynthConfig,
+    flange_from_camera: Iso3,
+    base_from_target: Iso3,
+) -> Result<SynthRobot, CalibError> {
+    let board = board_points(cfg.board_cols, cfg.board_rows, cfg.square_m);
+    let centre_in_target = Point3::new(
+        (cfg.board_cols - 1) as f64 * cfg.square_m / 2.0,
+        (cfg.board_rows - 1) as f64 * cfg.square_m / 2.0,
+        0.0,
+    );
+    let mut out = SynthRobot {
+        flange_from_camera,
+        base_from_target,
+        true_base_from_flange: vec![],
+        base_from_flange: vec![],
+        observations: vec![],
+        camera_from_target: vec![],
+        board: board.clone(),
+    };
+    let mut attempts = 0;
+    while out.observations.len() < cfg.captures {
+        attempts += 1;
+        if attempts > cfg.captures * 200 {
+            return Err(CalibError::Inconsistent(
+                "could not place viewpoints with the board in view".into(),
+            ));
+        }
+        // The board's printed side faces -z of the target frame (z points into the board).
+        let tilt = rng.random_range(0.0..cfg.max_tilt);
+        let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
+        let dist = rng.random_range(cfg.distance.0..cfg.distance.1);
+        let dir_in_target = Vector3::new(
+            tilt.sin() * azimuth.cos(),
+            tilt.sin() * azimuth.sin(),
+            -tilt.cos(),
+        );
+        let look_jitter = Vector3::new(
+            rng.random_range(-0.03..0.03),
+            rng.random_range(-0.03..0.03),
+            0.0,
+        );
+        let eye_in_target = centre_in_target + dir_in_target * dist;
+        let roll = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        let target_from_camera = look_at(&eye_in_target, &(centre_in_target + look_jitter), roll);
+        let camera_from_target = target_from_camera.inverse();
+        let pixels: Vec<(usize, Point2<f64>)> = board
+            .iter()
+            .enumerate()
+            .filter_map(|(k, p)| {
+                let uv = cfg.camera.project(&(camera_from_target * p))?;
+                let noisy = Point2::new(
+                    uv.x + cfg.pixel_sigma * gauss(rng),
+                    uv.y + cfg.pixel_sigma * gauss(rng),
+                );
+                cfg.camera.contains(&noisy).then_some((k, noisy))
+            })
+            .collect();
+        if pixels.len() < board.len() {
+            continue;
+        }
+        let true_base_from_flange =
+            base_from_target * target_from_camera * flange_from_camera.inverse();
+        let noise = Vector6::new(
+            cfg.robot_sigma_r * gauss(rng),
+            cfg.robot_sigma_r * gauss(rng),
+            cfg.robot_sigma_r * gauss(rng),
+            cfg.robot_sigma_t * gauss(rng),
+            cfg.robot_sigma_t * gauss(rng),
+            cfg.robot_sigma_t * gauss(rng),
+        );
+        let fitted = fit_pose(&cfg.camera, &board, &pixels, &camera_from_target)?;
+        out.true_base_from_flange.push(true_base_from_flange);
+        out.base_from_flange
+            .push(perturb_left(&noise, &true_base_from_flange));
+        out.camera_from_target.push(fitted);
+        out.observations.push(pixels);
+    }
+    Ok(out)
+}
+
+/// A random single-robot problem with a plausible hand-eye and board placement.
+pub fn random_robot(seed: u64, cfg: &SynthConfig) -> Result<SynthRobot, CalibError> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    // Camera some centimetres off the flange, looking roughly along the flange z.
+    let flange_from_camera = Iso3::from_parts(
+        Translation3::new(
+            rng.random_range(-0.08..0.08),
+            rng.random_range(-0.08..0.08),
+            rng.random_range(0.02..0.1),
+        ),
+        UnitQuaternion::from_scaled_axis(Vector3::new(
+            rng.random_range(-0.3..0.3),
+            rng.random_range(-0.3..0.3),
+            rng.random_range(-3.1..3.1),
+        )),
+    );
+    let base_from_target = Iso3::from_parts(
+        Translation3::new(
+            rng.random_range(0.4..0.7),
+            rng.random_range(-0.2..0.2),
+            rng.random_range(-0.1..0.1),
+        ),
+        // Board lying on the table, printed side up: target z points down.
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rng.random_range(-3.1..3.1)),
+    );
+    make_robot(&mut rng, cfg, flange_from_camera, base_from_target)
+}
+
+/// Gauss-Newton pose fit of board points to pixels from a nearby start (the
+/// synthetic stand-in for PnP).
+pub fn fit_pose(
+    camera: &CameraModel,
+    points: &[Point3<f64>],
+    pixels: &[(usize, Point2<f64>)],
+    start: &Iso3,
+) -> Result<Iso3, CalibError> {
+    let mut pose = *start;
+    for _ in 0..10 {
+        let mut jtj = nalgebra::Matrix6::<f64>::zeros();
+        let mut jtr = Vector6::<f64>::zeros();
+        for (k, uv) in pixels {
+            let p = pose * points[*k];
+            let (proj, jp) = camera
+                .project_with_jacobian(&p)
+                .ok_or_else(|| CalibError::Inconsistent("point behind camera".into()))?;
+            let r = proj - uv;
+            // d p / d(left perturbation [w, v]) = [-[p]x, I]
+            let mut dp = nalgebra::Matrix3x6::<f64>::zeros();
+            dp.fixed_view_mut::<3, 3>(0, 0)
+                .copy_from(&(-crate::pose::skew(&p.coords)));
+            dp.fixed_view_mut::<3, 3>(0, 3)
+                .copy_from(&nalgebra::Matrix3::identity());
+            let j = jp * dp;
+            jtj += j.transpose() * j;
+            jtr += j.transpose() * r;
+        }
+        let Some(step) = jtj.cholesky().map(|c| c.solve(&(-jtr))) else {
+            return Err(CalibError::DegeneratePoints(
+                "pose fit normal equations are singular".into(),
+            ));
+        };
+        pose = perturb_left(&step, &pose);
+        if step.norm() < 1e-12 {
+            break;
+        }
+    }
+    Ok(pose)
+}
+
+impl SynthRobot {
+    /// The captures as the refinement takes them.
+    pub fn board_captures(&self) -> Vec<crate::refine::BoardCapture> {
+        self.observations
+            .iter()
+            .zip(&self.base_from_flange)
+            .map(|(obs, b)| crate::refine::BoardCapture {
+                base_from_flange: *b,
+                target_points: obs.iter().map(|(k, _)| self.board[*k]).collect(),
+                pixels: obs.iter().map(|(_, uv)| *uv).collect(),
+            })
+            .collect()
+    }
+}
+
+/// Two robots sharing a board, and the transform between their bases.
+#[derive(Debug, Clone)]
+pub struct TwoRobots {
+    pub robots: [SynthRobot; 2],
+    pub base1_from_base2: Iso3,
+}
+
+/// Two carts about a metre apart facing each other (the seed paper's set-up),
+/// a board on the table between them; deterministic for a seed.
+pub fn two_robots(seed: u64, cfg: &SynthConfig) -> Result<TwoRobots, CalibError> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let base1_from_base2 = Iso3::from_parts(
+        Translation3::new(
+            1.0 + rng.random_range(-0.1..0.1),
+            rng.random_range(-0.1..0.1),
+            rng.random_range(-0.05..0.05),
+        ),
+        UnitQuaternion::from_axis_angle(
+            &Vector3::z_axis(),
+            std::f64::consts::PI + rng.random_range(-0.2..0.2),
+        ),
+    );
+    let base1_from_target = Iso3::from_parts(
+        Translation3::new(0.5, rng.random_range(-0.1..0.1), 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+    );
+    let hand_eye = |rng: &mut StdRng| {
+        Iso3::from_parts(
+            Translation3::new(
+                rng.random_range(-0.06..0.06),
+                rng.random_range(-0.06..0.06),
+                0.05,
+            ),
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, rng.random_range(-3.0..3.0))),
+        )
+    };
+    let x1 = hand_eye(&mut rng);
+    let x2 = hand_eye(&mut rng);
+    let r1 = make_robot(&mut rng, cfg, x1, base1_from_target)?;
+    let r2 = make_robot(
+        &mut rng,
+        cfg,
+        x2,
+        base1_from_base2.inverse() * base1_from_target,
+    )?;
+    Ok(TwoRobots {
+        robots: [r1, r2],
+        base1_from_base2,
+    })
+}

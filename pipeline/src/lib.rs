@@ -1,0 +1,502 @@
+//! The calibration pipeline: from captures to results.
+//!
+//! The agent and the coordinator are thin binaries; what they compute lives here so
+//! that an offline run on a dataset (`coordinator calibrate`, `agent handeye`) and
+//! the live services go through the same code. The stages:
+//!
+//! 1. [`observe_robot`]: per capture, detect the board (vision crate), fit its pose,
+//!    and pair it with the flange pose; failures become rejected captures with a
+//!    reason, never silent drops.
+//! 2. [`hand_eye`]: a closed form (Tsai, Park, Horaud, Andreff, Daniilidis, Shah, Li)
+//!    or the joint reprojection refinement seeded by Park.
+//! 3. [`base_to_base`]: both robots' refinements, then the joint problem over both
+//!    (`base1_from_base2` with covariance and a predicted touch error).
+//! 4. [`verify`]: the touch-point check of a result.
+
+use std::path::Path;
+use std::str::FromStr;
+use std::time::Instant;
+
+use b2b_calib::base_to_base::{initial_from_separate, refine_base_to_base};
+use b2b_calib::camera::CameraModel;
+use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
+use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
+use b2b_calib::refine::{
+    BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye, refine_hand_eye,
+};
+use b2b_calib::{CalibError, Iso3};
+use b2b_dataset::{Dataset, DatasetError, Target, TouchPair};
+use b2b_protocol::{
+    CalibrationResult, CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResult, Pose,
+    PredictedError, RESULT_FORMAT, RejectedCapture, Timings, VerifyReport,
+};
+use b2b_vision::{CheckerboardSpec, VisionError};
+use nalgebra::{Matrix6, Point3};
+
+/// Everything that can stop the pipeline, with where it happened.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error("robot {robot}: {source}")]
+    Calib { robot: String, source: CalibError },
+    #[error("{0}")]
+    Vision(#[from] VisionError),
+    #[error("{0}")]
+    Unsupported(String),
+    #[error("{0}")]
+    Invalid(String),
+}
+
+fn calib(robot: &str) -> impl FnOnce(CalibError) -> PipelineError + '_ {
+    move |source| PipelineError::Calib {
+        robot: robot.to_owned(),
+        source,
+    }
+}
+
+/// How a hand-eye is computed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HandEyeChoice {
+    ClosedForm(HandEyeMethod),
+    RobotWorld(RobotWorldMethod),
+    /// The joint reprojection refinement (the default).
+    Refined,
+}
+
+impl FromStr for HandEyeChoice {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        if s == "refined" {
+            return Ok(HandEyeChoice::Refined);
+        }
+        if let Ok(m) = s.parse::<HandEyeMethod>() {
+            return Ok(HandEyeChoice::ClosedForm(m));
+        }
+        if let Ok(m) = s.parse::<RobotWorldMethod>() {
+            return Ok(HandEyeChoice::RobotWorld(m));
+        }
+        Err(format!(
+            "unknown hand-eye method '{s}': expected one of tsai, park, horaud, andreff, daniilidis, shah, li, refined"
+        ))
+    }
+}
+
+impl HandEyeChoice {
+    pub fn name(&self) -> String {
+        match self {
+            HandEyeChoice::ClosedForm(m) => m.name().to_owned(),
+            HandEyeChoice::RobotWorld(m) => m.name().to_owned(),
+            HandEyeChoice::Refined => "refined".to_owned(),
+        }
+    }
+}
+
+/// One usable capture.
+#[derive(Debug, Clone)]
+pub struct Observation {
+    pub row: usize,
+    pub image: Option<String>,
+    pub camera_from_target: Iso3,
+    /// Flange pose and the corners, as the refinement takes them.
+    pub board: BoardCapture,
+    pub pnp_rms_px: f64,
+}
+
+/// One robot's usable captures and the rejected ones.
+#[derive(Debug, Clone)]
+pub struct RobotObservations {
+    pub robot: String,
+    pub camera: CameraModel,
+    pub observations: Vec<Observation>,
+    pub rejected: Vec<RejectedCapture>,
+    pub detect_ms: f64,
+}
+
+fn camera_of(ds: &Dataset, robot: &str) -> Result<CameraModel, PipelineError> {
+    let m = ds.robot_manifest(robot).ok_or_else(|| {
+        PipelineError::Invalid(format!(
+            "robot '{robot}' is not in {}",
+            ds.root.join("dataset.json").display()
+        ))
+    })?;
+    let c = m.camera.as_ref().ok_or_else(|| {
+        PipelineError::Unsupported(format!(
+            "robot '{robot}' has no camera intrinsics in dataset.json; estimating them from calibration images is not implemented yet"
+        ))
+    })?;
+    CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist).map_err(calib(robot))
+}
+
+fn checkerboard_spec(ds: &Dataset) -> Result<CheckerboardSpec, PipelineError> {
+    match &ds.manifest.target {
+        Target::Checkerboard {
+            inner_corners,
+            square_m,
+        } => Ok(CheckerboardSpec {
+            cols: inner_corners[0] as usize,
+            rows: inner_corners[1] as usize,
+            square_m: *square_m,
+        }),
+        other => Err(PipelineError::Unsupported(format!(
+            "target kind '{}' is not supported by the board method yet (checkerboard only)",
+            other.kind()
+        ))),
+    }
+}
+
+/// Detects the board in every capture of one robot and fits its pose. Rows that
+/// give `T_camera_target` directly (pose-only rows) are turned into the board's
+/// corners projected by that pose, so the refinement sees the same kind of data.
+pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, PipelineError> {
+    let start = Instant::now();
+    let camera = camera_of(ds, robot)?;
+    let spec = checkerboard_spec(ds)?;
+    let data = ds
+        .robot(robot)
+        .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+    let board_points = b2b_calib::synth::board_points(spec.cols, spec.rows, spec.square_m);
+    let mut observations = Vec::new();
+    let mut rejected = Vec::new();
+    for cap in &data.captures {
+        let image = cap.image.as_ref().map(|p| p.display().to_string());
+        let reject = |reason: String| RejectedCapture {
+            robot: robot.to_owned(),
+            image: image.clone(),
+            row: Some(cap.row),
+            reason,
+        };
+        if let (None, Some(camera_from_target)) = (&cap.image, cap.camera_from_target) {
+            let pixels: Vec<_> = board_points
+                .iter()
+                .filter_map(|p| camera.project(&(camera_from_target * p)))
+                .collect();
+            if pixels.len() != board_points.len() {
+                rejected.push(reject(
+                    "board behind the camera in the given T_camera_target".into(),
+                ));
+                continue;
+            }
+            observations.push(Observation {
+                row: cap.row,
+                image,
+                camera_from_target,
+                board: BoardCapture {
+                    base_from_flange: cap.base_from_flange,
+                    target_points: board_points.clone(),
+                    pixels,
+                },
+                pnp_rms_px: 0.0,
+            });
+            continue;
+        }
+        let Some(path) = ds.image_path(robot, cap) else {
+            rejected.push(reject(
+                "row has neither an image nor T_camera_target".into(),
+            ));
+            continue;
+        };
+        let detection = b2b_vision::load_gray(&path)
+            .and_then(|img| b2b_vision::detect_checkerboard(&img, &spec));
+        let detection = match detection {
+            Ok(d) => d,
+            Err(e) => {
+                tracing::warn!(robot, row = cap.row, "capture rejected: {e}");
+                rejected.push(reject(e.to_string()));
+                continue;
+            }
+        };
+        let pose = match b2b_vision::board_pose(&detection, &camera) {
+            Ok(p) => p,
+            Err(e) => {
+                rejected.push(reject(e.to_string()));
+                continue;
+            }
+        };
+        observations.push(Observation {
+            row: cap.row,
+            image,
+            camera_from_target: pose.camera_from_target,
+            board: BoardCapture {
+                base_from_flange: cap.base_from_flange,
+                target_points: detection.target_points,
+                pixels: detection.pixels,
+            },
+            pnp_rms_px: pose.rms_px,
+        });
+    }
+    Ok(RobotObservations {
+        robot: robot.to_owned(),
+        camera,
+        observations,
+        rejected,
+        detect_ms: start.elapsed().as_secs_f64() * 1e3,
+    })
+}
+
+fn covariance6(m: &Matrix6<f64>) -> [[f64; 6]; 6] {
+    let s = (m + m.transpose()) * 0.5;
+    let mut out = [[0.0; 6]; 6];
+    for (i, row) in out.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = s[(i, j)];
+        }
+    }
+    out
+}
+
+/// A hand-eye estimate of one robot, with the method that made it.
+#[derive(Debug, Clone)]
+pub struct HandEyeRun {
+    pub estimate: HandEyeEstimate,
+    pub result: HandEyeResult,
+}
+
+/// Computes one robot's hand-eye by the chosen method. Closed forms are reported
+/// with the covariance of the reprojection problem evaluated at their estimate.
+pub fn hand_eye(
+    obs: &RobotObservations,
+    choice: HandEyeChoice,
+    options: &RefineOptions,
+) -> Result<HandEyeRun, PipelineError> {
+    let start = Instant::now();
+    let robot = obs.robot.as_str();
+    let base_from_flange: Vec<Iso3> = obs
+        .observations
+        .iter()
+        .map(|o| o.board.base_from_flange)
+        .collect();
+    let camera_from_target: Vec<Iso3> = obs
+        .observations
+        .iter()
+        .map(|o| o.camera_from_target)
+        .collect();
+    let boards: Vec<BoardCapture> = obs.observations.iter().map(|o| o.board.clone()).collect();
+    let estimate = match choice {
+        HandEyeChoice::ClosedForm(m) => {
+            let x = handeye::hand_eye(&base_from_flange, &camera_from_target, m)
+                .map_err(calib(robot))?;
+            let w = handeye::base_from_target_given(&x, &base_from_flange, &camera_from_target)
+                .map_err(calib(robot))?;
+            evaluate_hand_eye(&obs.camera, &boards, (x, w), options).map_err(calib(robot))?
+        }
+        HandEyeChoice::RobotWorld(m) => {
+            let rw = handeye::robot_world(&base_from_flange, &camera_from_target, m)
+                .map_err(calib(robot))?;
+            evaluate_hand_eye(
+                &obs.camera,
+                &boards,
+                (rw.flange_from_camera, rw.base_from_target),
+                options,
+            )
+            .map_err(calib(robot))?
+        }
+        HandEyeChoice::Refined => {
+            let x = handeye::hand_eye(&base_from_flange, &camera_from_target, HandEyeMethod::Park)
+                .map_err(calib(robot))?;
+            let w = handeye::base_from_target_given(&x, &base_from_flange, &camera_from_target)
+                .map_err(calib(robot))?;
+            refine_hand_eye(&obs.camera, &boards, (x, w), options).map_err(calib(robot))?
+        }
+    };
+    let solve_ms = start.elapsed().as_secs_f64() * 1e3;
+    let result = HandEyeResult {
+        format: HANDEYE_FORMAT.to_owned(),
+        robot: robot.to_owned(),
+        method: choice.name(),
+        flange_from_camera: Pose::from_isometry(&estimate.flange_from_camera),
+        covariance: covariance6(&estimate.flange_from_camera_covariance),
+        base_from_target: Some(Pose::from_isometry(&estimate.base_from_target)),
+        reprojection_rms_px: estimate.rms_px,
+        per_capture: obs
+            .observations
+            .iter()
+            .zip(&estimate.per_capture)
+            .map(|(o, (rms, outliers))| CaptureResidual {
+                image: o.image.clone().unwrap_or_else(|| format!("row {}", o.row)),
+                rms_px: *rms,
+                outlier_corners: *outliers,
+            })
+            .collect(),
+        captures: CaptureSummary {
+            used: [(robot.to_owned(), obs.observations.len())]
+                .into_iter()
+                .collect(),
+            rejected: obs.rejected.clone(),
+        },
+        timings_ms: Timings {
+            detect: obs.detect_ms,
+            solve: solve_ms,
+            total: obs.detect_ms + solve_ms,
+        },
+    };
+    Ok(HandEyeRun { estimate, result })
+}
+
+/// Which method computes `base1_from_base2`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum B2bMethod {
+    Board,
+    Multimarker,
+    Rgbd,
+}
+
+impl FromStr for B2bMethod {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "board" => Ok(B2bMethod::Board),
+            "multimarker" => Ok(B2bMethod::Multimarker),
+            "rgbd" => Ok(B2bMethod::Rgbd),
+            _ => Err(format!(
+                "unknown method '{s}': expected board, multimarker or rgbd"
+            )),
+        }
+    }
+}
+
+impl B2bMethod {
+    /// The default for a dataset's target kind (shared/interfaces.md).
+    pub fn default_for(target: &Target) -> B2bMethod {
+        match target {
+            Target::Multimarker { .. } => B2bMethod::Multimarker,
+            _ => B2bMethod::Board,
+        }
+    }
+}
+
+/// The offline base-to-base calibration of a two-robot dataset.
+pub fn base_to_base(
+    ds: &Dataset,
+    method: B2bMethod,
+    options: &RefineOptions,
+) -> Result<CalibrationResult, PipelineError> {
+    let start = Instant::now();
+    match method {
+        B2bMethod::Board => {}
+        B2bMethod::Multimarker => {
+            return Err(PipelineError::Unsupported(
+                "method multimarker is not implemented yet".into(),
+            ));
+        }
+        B2bMethod::Rgbd => {
+            return Err(PipelineError::Unsupported(
+                "method rgbd is not implemented yet".into(),
+            ));
+        }
+    }
+    if ds.manifest.robots.len() != 2 {
+        return Err(PipelineError::Invalid(format!(
+            "{}: base-to-base needs exactly two robots, the manifest lists {}",
+            ds.root.join("dataset.json").display(),
+            ds.manifest.robots.len()
+        )));
+    }
+    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
+    let obs1 = observe_robot(ds, &ids[0])?;
+    let obs2 = observe_robot(ds, &ids[1])?;
+    let detect_ms = start.elapsed().as_secs_f64() * 1e3;
+    let solve_start = Instant::now();
+    let he1 = hand_eye(&obs1, HandEyeChoice::Refined, options)?;
+    let he2 = hand_eye(&obs2, HandEyeChoice::Refined, options)?;
+    let b1: Vec<BoardCapture> = obs1.observations.iter().map(|o| o.board.clone()).collect();
+    let b2: Vec<BoardCapture> = obs2.observations.iter().map(|o| o.board.clone()).collect();
+    let joint = refine_base_to_base(
+        [&obs1.camera, &obs2.camera],
+        [&b1, &b2],
+        &initial_from_separate(&he1.estimate, &he2.estimate),
+        options,
+    )
+    .map_err(calib("robot1+robot2"))?;
+    let board_centre = match &ds.manifest.target {
+        Target::Checkerboard {
+            inner_corners,
+            square_m,
+        } => Point3::new(
+            (inner_corners[0] as f64 - 1.0) * square_m / 2.0,
+            (inner_corners[1] as f64 - 1.0) * square_m / 2.0,
+            0.0,
+        ),
+        _ => Point3::origin(),
+    };
+    let (mean, p95) = predicted_error(
+        &joint.covariance,
+        &workspace_points(&(joint.base1_from_target * board_centre)),
+        0.0,
+    );
+    let solve_ms = solve_start.elapsed().as_secs_f64() * 1e3;
+    let mut rejected = obs1.rejected.clone();
+    rejected.extend(obs2.rejected.iter().cloned());
+    Ok(CalibrationResult {
+        format: RESULT_FORMAT.to_owned(),
+        method: "board".to_owned(),
+        base1_from_base2: Pose::from_isometry(&joint.base1_from_base2),
+        covariance: covariance6(&joint.covariance),
+        predicted_touch_error_m: PredictedError { mean, p95 },
+        hand_eye: [
+            (
+                ids[0].clone(),
+                Pose::from_isometry(&joint.flange_from_camera[0]),
+            ),
+            (
+                ids[1].clone(),
+                Pose::from_isometry(&joint.flange_from_camera[1]),
+            ),
+        ]
+        .into_iter()
+        .collect(),
+        captures: CaptureSummary {
+            used: [
+                (ids[0].clone(), obs1.observations.len()),
+                (ids[1].clone(), obs2.observations.len()),
+            ]
+            .into_iter()
+            .collect(),
+            rejected,
+        },
+        timings_ms: Timings {
+            detect: detect_ms,
+            solve: solve_ms,
+            total: start.elapsed().as_secs_f64() * 1e3,
+        },
+    })
+}
+
+/// Checks a result against touch pairs; `tip_sigma_m` is each pointer's tip noise.
+pub fn verify(
+    result: &CalibrationResult,
+    touches: &[TouchPair],
+    tip_sigma_m: f64,
+) -> Result<(VerifyReport, TouchMetrics), PipelineError> {
+    result
+        .validate()
+        .map_err(|e| PipelineError::Invalid(format!("result: {e}")))?;
+    let base1_from_base2 = result
+        .base1_from_base2
+        .to_isometry("T_base1_base2")
+        .map_err(|e| PipelineError::Invalid(e.to_string()))?;
+    let cov = Matrix6::from_fn(|i, j| result.covariance[i][j]);
+    let pairs: Vec<_> = touches
+        .iter()
+        .map(|t| (t.tip1_in_base1, t.tip2_in_base2))
+        .collect();
+    let m = verify_touches(&base1_from_base2, &cov, &pairs, tip_sigma_m)
+        .map_err(calib("touch points"))?;
+    Ok((
+        VerifyReport {
+            n: m.n,
+            touch_mean_mm: m.mean_m * 1e3,
+            touch_rms_mm: m.rms_m * 1e3,
+            touch_max_mm: m.max_m * 1e3,
+            procrustes_linear_error_mm: m.procrustes_linear_m * 1e3,
+            procrustes_angular_error_deg: m.procrustes_angular_rad.to_degrees(),
+            within_predicted_p95: m.within_predicted_p95,
+        },
+        m,
+    ))
+}
+
+/// Loads a dataset, naming the folder in the error.
+pub fn load_dataset(dir: &Path) -> Result<Dataset, PipelineError> {
+    Ok(Dataset::load(dir)?)
+}
