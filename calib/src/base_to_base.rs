@@ -37,6 +37,8 @@ pub struct BaseToBaseEstimate {
     /// Per robot, per capture: RMS residual (px) and rejected corners.
     pub per_capture: [Vec<(f64, usize)>; 2],
     pub sigma_px: f64,
+    /// How many times the configured robot pose variance the data show (>= 1).
+    pub robot_noise_scale: f64,
     pub rms_px: f64,
 }
 
@@ -83,14 +85,9 @@ pub fn refine_base_to_base(
     initial: &BaseToBaseInitial,
     options: &RefineOptions,
 ) -> Result<BaseToBaseEstimate, CalibError> {
-    for (r, caps) in captures.iter().enumerate() {
-        if caps.len() < 3 {
-            return Err(CalibError::TooFewCaptures {
-                got: caps.len(),
-                need: 3,
-            });
-        }
-        let _ = r;
+    for caps in captures.iter() {
+        let base_from_flange: Vec<Iso3> = caps.iter().map(|c| c.base_from_flange).collect();
+        crate::degeneracy::check_motions(&base_from_flange, &options.motion)?;
     }
     // Blocks: 0 X1, 1 X2, 2 base1_from_target, 3 base1_from_base2.
     let mut models = Vec::new();
@@ -133,6 +130,7 @@ pub fn refine_base_to_base(
             sol.per_capture[n1..].to_vec(),
         ],
         sigma_px: sol.sigma_px,
+        robot_noise_scale: sol.robot_noise_scale,
         rms_px: sol.rms_px,
     })
 }

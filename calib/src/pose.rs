@@ -183,13 +183,13 @@ pub fn average_rotations(
         m += w * v * v.transpose();
     }
     let eig = SymmetricEigen::new(m);
-    let (imax, _) = eig
-        .eigenvalues
-        .iter()
-        .enumerate()
-        .fold((0, f64::NEG_INFINITY), |(bi, bv), (i, &v)| {
-            if v > bv { (i, v) } else { (bi, bv) }
-        });
+    let (imax, _) =
+        eig.eigenvalues
+            .iter()
+            .enumerate()
+            .fold((0, f64::NEG_INFINITY), |(bi, bv), (i, &v)| {
+                if v > bv { (i, v) } else { (bi, bv) }
+            });
     let v = eig.eigenvectors.column(imax);
     Ok(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
         v[3], v[0], v[1], v[2],

@@ -72,6 +72,9 @@ pub struct RefineOptions {
     pub robot_noise: RobotNoise,
     /// Smallest number of corners a capture must keep to stay in the fit.
     pub min_corners_per_capture: usize,
+    /// The motion checks run before any fit (too few captures, pure
+    /// translation, parallel rotation axes, rotations too small).
+    pub motion: crate::degeneracy::MotionThresholds,
 }
 
 impl Default for RefineOptions {
@@ -82,6 +85,7 @@ impl Default for RefineOptions {
             mad_k: 3.5,
             robot_noise: RobotNoise::default(),
             min_corners_per_capture: 4,
+            motion: crate::degeneracy::MotionThresholds::default(),
         }
     }
 }
@@ -127,6 +131,8 @@ pub(crate) struct EngineSolution {
     /// intrinsics are refined).
     pub covariance: DMatrix<f64>,
     pub sigma_px: f64,
+    /// How many times the configured robot pose variance the data show (>= 1).
+    pub robot_noise_scale: f64,
     pub rms_px: f64,
     /// Per capture: RMS over inlier corners, and the number of rejected corners.
     pub per_capture: Vec<(f64, usize)>,
@@ -143,6 +149,8 @@ struct Engine {
     /// Per capture, the whitening of its residuals by their covariance (pixel
     /// noise plus the robot's pose noise), once the robust stage is over.
     whitening: Option<Vec<Whitening>>,
+    /// The estimated scale of the configured robot noise variance (>= 1).
+    robot_noise_scale: f64,
     params: DVector<f64>,
 }
 
@@ -221,7 +229,110 @@ impl Engine {
             .sum()
     }
 
-    /// Residuals and (optionally) the Jacobian; `weighted` applies Huber weights.
+    fn current(&self) -> (Vec<Iso3>, Vec<CameraModel>) {
+        (
+            (0..self.reference_poses.len())
+                .map(|b| self.pose(b))
+                .collect(),
+            (0..self.reference_cameras.len())
+                .map(|c| self.camera(c))
+                .collect(),
+        )
+    }
+
+    /// One capture's inlier residuals (2 per corner), their Jacobian (when asked)
+    /// and their sensitivity `G` to the capture's flange pose, whitened when a
+    /// whitening is set (`G` stays raw); `weighted` applies the Huber weights.
+    fn capture_block(
+        &self,
+        ci: usize,
+        poses: &[Iso3],
+        cameras: &[CameraModel],
+        with_jacobian: bool,
+        weighted: bool,
+    ) -> Option<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
+        let cap = &self.captures[ci];
+        let n = self.n_params();
+        let x = poses[cap.hand_eye];
+        let w = poses[cap.target];
+        let base_from_camera = cap.capture.base_from_flange * x;
+        let ref_from_camera = match cap.ref_from_base {
+            Some(z) => poses[z] * base_from_camera,
+            None => base_from_camera,
+        };
+        let camera_from_ref = ref_from_camera.inverse();
+        let camera_from_target = camera_from_ref * w;
+        let cam = &cameras[cap.camera];
+        // Sensitivities of the camera-frame left perturbation to each block.
+        let d_target = adjoint(&camera_from_ref);
+        let d_link = -d_target;
+        let d_hand_eye = -adjoint(&x.inverse());
+        let d_robot = -adjoint(&base_from_camera.inverse());
+        let n_in = cap.inlier.iter().filter(|v| **v).count();
+        let mut r = DVector::zeros(2 * n_in);
+        let (mut j, mut g) = if with_jacobian {
+            (DMatrix::zeros(2 * n_in, n), DMatrix::zeros(2 * n_in, 6))
+        } else {
+            (DMatrix::zeros(0, 0), DMatrix::zeros(0, 0))
+        };
+        let intr_off = 6 * poses.len();
+        let mut row = 0;
+        for (k, (p, uv)) in cap
+            .capture
+            .target_points
+            .iter()
+            .zip(&cap.capture.pixels)
+            .enumerate()
+        {
+            if !cap.inlier[k] {
+                continue;
+            }
+            let sw = if weighted {
+                self.sqrt_weights[ci][k]
+            } else {
+                1.0
+            };
+            let p_c = camera_from_target * p;
+            let (proj, jp): (Point2<f64>, Matrix2x3<f64>) = cam.project_with_jacobian(&p_c)?;
+            let e = proj - uv;
+            r[row] = sw * e.x;
+            r[row + 1] = sw * e.y;
+            if with_jacobian {
+                let mut dp = Matrix3x6::zeros();
+                dp.fixed_view_mut::<3, 3>(0, 0)
+                    .copy_from(&(-skew(&p_c.coords)));
+                dp.fixed_view_mut::<3, 3>(0, 3)
+                    .copy_from(&Matrix3::identity());
+                let jd: SMatrix<f64, 2, 6> = jp * dp * sw;
+                let mut put = |block: usize, d: &Matrix6<f64>| {
+                    let v = jd * d;
+                    let mut dst = j.view_mut((row, 6 * block), (2, 6));
+                    dst += v;
+                };
+                put(cap.target, &d_target);
+                put(cap.hand_eye, &d_hand_eye);
+                if let Some(zb) = cap.ref_from_base {
+                    put(zb, &d_link);
+                }
+                g.view_mut((row, 0), (2, 6)).copy_from(&(jd * d_robot));
+                if self.refine_intrinsics {
+                    let ji = cam.intrinsics_jacobian(&p_c)? * sw;
+                    let off = intr_off + N_INTRINSICS * cap.camera;
+                    j.view_mut((row, off), (2, N_INTRINSICS)).copy_from(&ji);
+                }
+            }
+            row += 2;
+        }
+        if let Some(wh) = self.whitening.as_ref().map(|w| &w[ci]) {
+            wh.apply_vector(&mut r.rows_mut(0, row));
+            if with_jacobian {
+                wh.apply_matrix(&mut j.rows_mut(0, row));
+            }
+        }
+        Some((r, j, g))
+    }
+
+    /// Residuals and (optionally) the Jacobian of all captures, stacked.
     fn linearise(&self, with_jacobian: bool, weighted: bool) -> Option<Linearisation> {
         let m = self.n_residuals();
         let n = self.n_params();
@@ -232,113 +343,40 @@ impl Engine {
             DMatrix::zeros(0, 0)
         };
         let mut robot_blocks = Vec::with_capacity(self.captures.len());
-        let poses: Vec<Iso3> = (0..self.reference_poses.len())
-            .map(|b| self.pose(b))
-            .collect();
-        let cameras: Vec<CameraModel> = (0..self.reference_cameras.len())
-            .map(|c| self.camera(c))
-            .collect();
-        let intr_off = 6 * poses.len();
+        let (poses, cameras) = self.current();
         let mut row = 0;
-        for (ci, cap) in self.captures.iter().enumerate() {
-            let x = poses[cap.hand_eye];
-            let z = cap.ref_from_base.map(|b| poses[b]);
-            let w = poses[cap.target];
-            let base_from_camera = cap.capture.base_from_flange * x;
-            let ref_from_camera = match z {
-                Some(z) => z * base_from_camera,
-                None => base_from_camera,
-            };
-            let camera_from_ref = ref_from_camera.inverse();
-            let camera_from_target = camera_from_ref * w;
-            let cam = &cameras[cap.camera];
-            // Sensitivities of the camera-frame left perturbation to each block.
-            let d_target = adjoint(&camera_from_ref);
-            let d_link = -d_target;
-            let d_hand_eye = -adjoint(&x.inverse());
-            let d_robot = -adjoint(&base_from_camera.inverse());
-            let start = row;
-            let n_in = cap.inlier.iter().filter(|v| **v).count();
-            let mut g = if with_jacobian {
-                DMatrix::zeros(2 * n_in, 6)
-            } else {
-                DMatrix::zeros(0, 0)
-            };
-            let mut local = 0;
-            for (k, (p, uv)) in cap
-                .capture
-                .target_points
-                .iter()
-                .zip(&cap.capture.pixels)
-                .enumerate()
-            {
-                if !cap.inlier[k] {
-                    continue;
-                }
-                let sw = if weighted {
-                    self.sqrt_weights[ci][k]
-                } else {
-                    1.0
-                };
-                let p_c = camera_from_target * p;
-                let (proj, jp): (Point2<f64>, Matrix2x3<f64>) = cam.project_with_jacobian(&p_c)?;
-                let e = proj - uv;
-                r[row] = sw * e.x;
-                r[row + 1] = sw * e.y;
-                if with_jacobian {
-                    let mut dp = Matrix3x6::zeros();
-                    dp.fixed_view_mut::<3, 3>(0, 0)
-                        .copy_from(&(-skew(&p_c.coords)));
-                    dp.fixed_view_mut::<3, 3>(0, 3)
-                        .copy_from(&Matrix3::identity());
-                    let jd: SMatrix<f64, 2, 6> = jp * dp * sw;
-                    let mut put = |block: usize, d: &Matrix6<f64>| {
-                        let v = jd * d;
-                        for a in 0..2 {
-                            for b in 0..6 {
-                                j[(row + a, 6 * block + b)] += v[(a, b)];
-                            }
-                        }
-                    };
-                    put(cap.target, &d_target);
-                    put(cap.hand_eye, &d_hand_eye);
-                    if let Some(zb) = cap.ref_from_base {
-                        put(zb, &d_link);
-                    }
-                    let gr = jd * d_robot;
-                    for a in 0..2 {
-                        for b in 0..6 {
-                            g[(2 * local + a, b)] = gr[(a, b)];
-                        }
-                    }
-                    if self.refine_intrinsics {
-                        let ji = cam.intrinsics_jacobian(&p_c)? * sw;
-                        let off = intr_off + N_INTRINSICS * cap.camera;
-                        for a in 0..2 {
-                            for b in 0..N_INTRINSICS {
-                                j[(row + a, off + b)] = ji[(a, b)];
-                            }
-                        }
-                    }
-                }
-                row += 2;
-                local += 1;
-            }
-            if let Some(w) = self.whitening.as_ref().map(|w| &w[ci]) {
-                w.apply_vector(&mut r.rows_mut(start, row - start));
-                if with_jacobian {
-                    w.apply_matrix(&mut j.rows_mut(start, row - start));
-                }
-            }
+        for ci in 0..self.captures.len() {
+            let (rc, jc, g) = self.capture_block(ci, &poses, &cameras, with_jacobian, weighted)?;
+            let rows = rc.len();
+            r.rows_mut(row, rows).copy_from(&rc);
             if with_jacobian {
-                robot_blocks.push((start, g));
+                j.rows_mut(row, rows).copy_from(&jc);
+                robot_blocks.push((row, g));
             }
+            row += rows;
         }
         Some(Linearisation {
             residuals: r,
             jacobian: j,
             robot_blocks,
         })
+    }
+
+    /// The normal equations `JᵀJ`, `Jᵀr` and `rᵀr`, accumulated capture by capture
+    /// (a dense product per capture instead of one tall matrix).
+    fn normal_equations(&self) -> Option<(DMatrix<f64>, DVector<f64>, f64)> {
+        let n = self.n_params();
+        let (poses, cameras) = self.current();
+        let mut jtj = DMatrix::zeros(n, n);
+        let mut jtr = DVector::zeros(n);
+        let mut rss = 0.0;
+        for ci in 0..self.captures.len() {
+            let (rc, jc, _) = self.capture_block(ci, &poses, &cameras, true, true)?;
+            jtj.gemm_tr(1.0, &jc, &jc, 1.0);
+            jtr.gemv_tr(1.0, &jc, &rc, 1.0);
+            rss += rc.norm_squared();
+        }
+        Some((jtj, jtr, rss))
     }
 
     /// Computes each capture's residual whitening at the current estimate, with
@@ -353,6 +391,7 @@ impl Engine {
             q: DMatrix<f64>,
             s2: Vector6<f64>,
             r2: f64,
+            r2_rows: usize,
             p2: Vector6<f64>,
         }
         let mut blocks = Vec::with_capacity(lin.robot_blocks.len());
@@ -364,6 +403,7 @@ impl Engine {
                     q: DMatrix::zeros(0, 6),
                     s2: Vector6::zeros(),
                     r2: rc.norm_squared(),
+                    r2_rows: rows,
                     p2: Vector6::zeros(),
                 });
                 continue;
@@ -383,42 +423,51 @@ impl Engine {
                 q,
                 s2,
                 r2: rc.norm_squared(),
+                r2_rows: rows,
                 p2,
             });
         }
-        let dof = (lin.residuals.len() - self.n_params()) as f64;
-        let chi2 = |sigma2: f64| -> f64 {
-            blocks
-                .iter()
-                .map(|b| {
-                    (b.r2
-                        - (0..6)
-                            .map(|i| b.s2[i] / (sigma2 + b.s2[i]) * b.p2[i])
-                            .sum::<f64>())
-                        / sigma2
-                })
-                .sum()
-        };
-        // chi2 falls as sigma grows: bisect on log sigma in [0.01, 100] px.
-        let (mut lo, mut hi) = (0.01f64.ln(), 100f64.ln());
-        let sigma = if chi2((lo.exp()).powi(2)) <= dof {
-            lo.exp()
-        } else {
-            for _ in 0..60 {
-                let mid = 0.5 * (lo + hi);
-                if chi2(mid.exp().powi(2)) > dof {
-                    lo = mid
-                } else {
-                    hi = mid
-                }
+        // Two variance components, by moments: corner noise σ² from the residual
+        // energy outside each capture's robot subspace (parameters move the
+        // camera pose only, so they do not reach it), and a scale κ >= 1 of the
+        // configured robot noise from the energy inside it. κ > 1 says the robot
+        // is worse than configured (a real arm's absolute error, a loose mount).
+        let n = self.n_params() as f64;
+        let (mut perp, mut perp_dof, mut span, mut s2_sum, mut span_dims) =
+            (0.0, 0.0, 0.0, 0.0, 0.0);
+        for b in &blocks {
+            let rows = b.r2_rows as f64;
+            if b.q.nrows() == 0 {
+                perp += b.r2;
+                perp_dof += rows;
+                continue;
             }
-            (0.5 * (lo + hi)).exp()
+            let inside = b.p2.sum();
+            perp += b.r2 - inside;
+            perp_dof += rows - 6.0;
+            span += inside;
+            s2_sum += b.s2.sum();
+            span_dims += 6.0;
+        }
+        let sigma2 = if perp_dof > 0.0 {
+            (perp / perp_dof).max(1e-8)
+        } else {
+            1e-4
         };
+        let free = (span_dims - n).max(1.0);
+        let kappa = if s2_sum > 0.0 {
+            ((span - free * sigma2) / (s2_sum * free / span_dims.max(1.0))).max(1.0)
+        } else {
+            1.0
+        };
+        let sigma = sigma2.sqrt();
+        self.robot_noise_scale = kappa;
         self.whitening = Some(
             blocks
                 .into_iter()
                 .map(|b| Whitening {
-                    d: b.s2.map(|s2| sigma / (sigma * sigma + s2).sqrt() - 1.0),
+                    d: b.s2
+                        .map(|s2| sigma / (sigma * sigma + kappa * s2).sqrt() - 1.0),
                     q: b.q,
                     inv_sigma: 1.0 / sigma,
                 })
@@ -469,25 +518,66 @@ impl Engine {
     }
 }
 
-impl LeastSquaresProblem<f64, Dyn, Dyn> for Engine {
+/// The problem as the least-squares crate sees it, compressed to `n + 1`
+/// residuals: with `JᵀJ = L Lᵀ`, the residuals `[L⁻¹ Jᵀr; sqrt(rᵀr - |L⁻¹ Jᵀr|²)]`
+/// and the Jacobian `[Lᵀ; 0]` have the same norm, gradient and Gauss-Newton
+/// normal matrix as the full stack of 2 residuals per corner, so every
+/// Levenberg-Marquardt step is the same, while the solver's QR works on an
+/// `(n + 1) x n` matrix instead of thousands of rows. Both are computed together
+/// and cached per parameter vector.
+/// Compressed residuals and Jacobian at one parameter vector.
+type CompressedValue = (DVector<f64>, DMatrix<f64>);
+
+struct Compressed {
+    engine: Engine,
+    /// The last parameters and the compressed residuals and Jacobian there.
+    cache: std::cell::RefCell<Option<(DVector<f64>, Option<CompressedValue>)>>,
+}
+
+impl Compressed {
+    fn evaluate(&self) -> Option<(DVector<f64>, DMatrix<f64>)> {
+        if let Some((p, v)) = self.cache.borrow().as_ref()
+            && p == &self.engine.params
+        {
+            return v.clone();
+        }
+        let value = self.engine.normal_equations().and_then(|(jtj, jtr, rss)| {
+            let n = jtj.nrows();
+            let chol = jtj.cholesky()?;
+            let l = chol.l();
+            let r1 = l.solve_lower_triangular(&jtr)?;
+            let rest = (rss - r1.norm_squared()).max(0.0).sqrt();
+            let mut r = DVector::zeros(n + 1);
+            r.rows_mut(0, n).copy_from(&r1);
+            r[n] = rest;
+            let mut j = DMatrix::zeros(n + 1, n);
+            j.view_mut((0, 0), (n, n)).copy_from(&l.transpose());
+            Some((r, j))
+        });
+        *self.cache.borrow_mut() = Some((self.engine.params.clone(), value.clone()));
+        value
+    }
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for Compressed {
     type ResidualStorage = VecStorage<f64, Dyn, U1>;
     type JacobianStorage = Owned<f64, Dyn, Dyn>;
     type ParameterStorage = Owned<f64, Dyn>;
 
     fn set_params(&mut self, x: &DVector<f64>) {
-        self.params.copy_from(x);
+        self.engine.params.copy_from(x);
     }
 
     fn params(&self) -> DVector<f64> {
-        self.params.clone()
+        self.engine.params.clone()
     }
 
     fn residuals(&self) -> Option<DVector<f64>> {
-        self.linearise(false, true).map(|l| l.residuals)
+        self.evaluate().map(|(r, _)| r)
     }
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
-        self.linearise(true, true).map(|l| l.jacobian)
+        self.evaluate().map(|(_, j)| j)
     }
 }
 
@@ -507,11 +597,16 @@ fn median(v: &mut [f64]) -> f64 {
 fn minimise(engine: Engine) -> Result<Engine, CalibError> {
     // Relative tolerances of 1e-7 stop far below the noise (parameters move by
     // ~1e-7 of their size) and save a third of the evaluations of the defaults.
-    let (engine, report) = LevenbergMarquardt::new()
+    let problem = Compressed {
+        engine,
+        cache: std::cell::RefCell::new(None),
+    };
+    let (problem, report) = LevenbergMarquardt::new()
         .with_ftol(1e-7)
         .with_xtol(1e-7)
         .with_patience(200)
-        .minimize(engine);
+        .minimize(problem);
+    let engine = problem.engine;
     tracing::trace!(termination = ?report.termination, evaluations = report.number_of_evaluations, "lm");
     if !report.termination.was_successful()
         && !matches!(
@@ -572,6 +667,7 @@ pub(crate) fn solve(
         captures,
         sqrt_weights,
         whitening: None,
+        robot_noise_scale: 1.0,
         params: DVector::zeros(0),
     };
     engine.params = DVector::zeros(engine.n_params());
@@ -692,6 +788,7 @@ pub(crate) fn solve(
         cameras: engine.reference_cameras.clone(),
         covariance,
         sigma_px: sigma,
+        robot_noise_scale: engine.robot_noise_scale,
         rms_px: {
             let inl: Vec<f64> = errors
                 .iter()
@@ -722,6 +819,8 @@ pub struct HandEyeEstimate {
     pub base_from_target_covariance: Matrix6<f64>,
     /// Estimated corner noise (px, per axis).
     pub sigma_px: f64,
+    /// How many times the configured robot pose variance the data show (>= 1).
+    pub robot_noise_scale: f64,
     /// RMS of the inlier corner residual norms (px).
     pub rms_px: f64,
     /// Per capture: RMS residual norm (px) and number of rejected corners.
@@ -758,12 +857,8 @@ fn hand_eye_problem(
     options: &RefineOptions,
     optimise: bool,
 ) -> Result<HandEyeEstimate, CalibError> {
-    if captures.len() < 3 {
-        return Err(CalibError::TooFewCaptures {
-            got: captures.len(),
-            need: 3,
-        });
-    }
+    let base_from_flange: Vec<Iso3> = captures.iter().map(|c| c.base_from_flange).collect();
+    crate::degeneracy::check_motions(&base_from_flange, &options.motion)?;
     let models = captures
         .iter()
         .map(|c| CaptureModel {
@@ -789,6 +884,7 @@ fn hand_eye_problem(
         flange_from_camera_covariance: sol.covariance.fixed_view::<6, 6>(0, 0).into(),
         base_from_target_covariance: sol.covariance.fixed_view::<6, 6>(6, 6).into(),
         sigma_px: sol.sigma_px,
+        robot_noise_scale: sol.robot_noise_scale,
         rms_px: sol.rms_px,
         per_capture: sol.per_capture,
     })
@@ -907,6 +1003,49 @@ mod tests {
         )
         .unwrap_err();
         assert!(matches!(err, CalibError::TooFewCaptures { .. }));
+    }
+
+    #[test]
+    fn degenerate_motions_are_named_errors() {
+        use nalgebra::{Translation3, UnitQuaternion, Vector3};
+        let cfg = SynthConfig::default();
+        let robot = random_robot(1, &cfg).unwrap();
+        let caps = captures_of(&robot);
+        // Pure translation: every flange pose with the first pose's rotation.
+        let mut pure = caps.clone();
+        for (i, c) in pure.iter_mut().enumerate() {
+            c.base_from_flange = Iso3::from_parts(
+                Translation3::new(0.4 + 0.01 * i as f64, 0.0, 0.3),
+                caps[0].base_from_flange.rotation,
+            );
+        }
+        let err = refine_hand_eye(
+            &cfg.camera,
+            &pure,
+            perturbed_start(&robot),
+            &RefineOptions::default(),
+        )
+        .unwrap_err();
+        assert!(matches!(err, CalibError::PureTranslation { .. }), "{err}");
+        // Rotations about one axis only.
+        let mut parallel = caps.clone();
+        for (i, c) in parallel.iter_mut().enumerate() {
+            c.base_from_flange = Iso3::from_parts(
+                Translation3::new(0.4, 0.01 * i as f64, 0.3),
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.2 * i as f64),
+            );
+        }
+        let err = refine_hand_eye(
+            &cfg.camera,
+            &parallel,
+            perturbed_start(&robot),
+            &RefineOptions::default(),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(err, CalibError::ParallelRotationAxes { .. }),
+            "{err}"
+        );
     }
 
     #[test]

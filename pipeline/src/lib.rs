@@ -101,6 +101,8 @@ pub struct Observation {
     /// Flange pose and the corners, as the refinement takes them.
     pub board: BoardCapture,
     pub pnp_rms_px: f64,
+    /// Per-corner residual of the board pose (px).
+    pub residuals_px: Vec<f64>,
 }
 
 /// One robot's usable captures and the rejected ones.
@@ -145,89 +147,116 @@ fn checkerboard_spec(ds: &Dataset) -> Result<CheckerboardSpec, PipelineError> {
     }
 }
 
-/// Detects the board in every capture of one robot and fits its pose. Rows that
-/// give `T_camera_target` directly (pose-only rows) are turned into the board's
+/// What the detector needs to know about one robot of a dataset.
+#[derive(Debug, Clone)]
+pub struct RobotSetup {
+    pub robot: String,
+    pub camera: CameraModel,
+    pub spec: CheckerboardSpec,
+    board_points: Vec<Point3<f64>>,
+}
+
+impl RobotSetup {
+    /// The camera and board of `robot` in a dataset.
+    pub fn from_dataset(ds: &Dataset, robot: &str) -> Result<Self, PipelineError> {
+        let camera = camera_of(ds, robot)?;
+        let spec = checkerboard_spec(ds)?;
+        let board_points = b2b_calib::synth::board_points(spec.cols, spec.rows, spec.square_m);
+        Ok(RobotSetup {
+            robot: robot.to_owned(),
+            camera,
+            spec,
+            board_points,
+        })
+    }
+}
+
+/// Detects the board in one capture and fits its pose, or says why not. Rows
+/// that give `T_camera_target` directly (pose-only rows) become the board's
 /// corners projected by that pose, so the refinement sees the same kind of data.
+pub fn observe_capture(
+    ds: &Dataset,
+    setup: &RobotSetup,
+    cap: &b2b_dataset::Capture,
+) -> Result<Observation, RejectedCapture> {
+    let robot = setup.robot.as_str();
+    let image = cap.image.as_ref().map(|p| p.display().to_string());
+    let reject = |reason: String| RejectedCapture {
+        robot: robot.to_owned(),
+        image: image.clone(),
+        row: Some(cap.row),
+        reason,
+    };
+    if let (None, Some(camera_from_target)) = (&cap.image, cap.camera_from_target) {
+        let pixels: Vec<_> = setup
+            .board_points
+            .iter()
+            .filter_map(|p| setup.camera.project(&(camera_from_target * p)))
+            .collect();
+        if pixels.len() != setup.board_points.len() {
+            return Err(reject(
+                "board behind the camera in the given T_camera_target".into(),
+            ));
+        }
+        return Ok(Observation {
+            row: cap.row,
+            image,
+            camera_from_target,
+            board: BoardCapture {
+                base_from_flange: cap.base_from_flange,
+                target_points: setup.board_points.clone(),
+                pixels,
+            },
+            pnp_rms_px: 0.0,
+            residuals_px: vec![0.0; setup.board_points.len()],
+        });
+    }
+    let Some(path) = ds.image_path(robot, cap) else {
+        return Err(reject(
+            "row has neither an image nor T_camera_target".into(),
+        ));
+    };
+    let detection = b2b_vision::load_gray(&path)
+        .and_then(|img| b2b_vision::detect_checkerboard(&img, &setup.spec))
+        .map_err(|e| reject(e.to_string()))?;
+    let pose =
+        b2b_vision::board_pose(&detection, &setup.camera).map_err(|e| reject(e.to_string()))?;
+    Ok(Observation {
+        row: cap.row,
+        image,
+        camera_from_target: pose.camera_from_target,
+        board: BoardCapture {
+            base_from_flange: cap.base_from_flange,
+            target_points: detection.target_points,
+            pixels: detection.pixels,
+        },
+        pnp_rms_px: pose.rms_px,
+        residuals_px: pose.residuals_px,
+    })
+}
+
+/// Detects the board in every capture of one robot and fits its pose; failures
+/// become rejected captures with a reason, never silent drops.
 pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, PipelineError> {
     let start = Instant::now();
-    let camera = camera_of(ds, robot)?;
-    let spec = checkerboard_spec(ds)?;
+    let setup = RobotSetup::from_dataset(ds, robot)?;
     let data = ds
         .robot(robot)
         .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
-    let board_points = b2b_calib::synth::board_points(spec.cols, spec.rows, spec.square_m);
     let mut observations = Vec::new();
     let mut rejected = Vec::new();
     for cap in &data.captures {
-        let image = cap.image.as_ref().map(|p| p.display().to_string());
-        let reject = |reason: String| RejectedCapture {
-            robot: robot.to_owned(),
-            image: image.clone(),
-            row: Some(cap.row),
-            reason,
-        };
-        if let (None, Some(camera_from_target)) = (&cap.image, cap.camera_from_target) {
-            let pixels: Vec<_> = board_points
-                .iter()
-                .filter_map(|p| camera.project(&(camera_from_target * p)))
-                .collect();
-            if pixels.len() != board_points.len() {
-                rejected.push(reject(
-                    "board behind the camera in the given T_camera_target".into(),
-                ));
-                continue;
+        match observe_capture(ds, &setup, cap) {
+            Ok(o) => observations.push(o),
+            Err(r) => {
+                tracing::warn!(robot, row = cap.row, "capture rejected: {}", r.reason);
+                rejected.push(r);
             }
-            observations.push(Observation {
-                row: cap.row,
-                image,
-                camera_from_target,
-                board: BoardCapture {
-                    base_from_flange: cap.base_from_flange,
-                    target_points: board_points.clone(),
-                    pixels,
-                },
-                pnp_rms_px: 0.0,
-            });
-            continue;
         }
-        let Some(path) = ds.image_path(robot, cap) else {
-            rejected.push(reject(
-                "row has neither an image nor T_camera_target".into(),
-            ));
-            continue;
-        };
-        let detection = b2b_vision::load_gray(&path)
-            .and_then(|img| b2b_vision::detect_checkerboard(&img, &spec));
-        let detection = match detection {
-            Ok(d) => d,
-            Err(e) => {
-                tracing::warn!(robot, row = cap.row, "capture rejected: {e}");
-                rejected.push(reject(e.to_string()));
-                continue;
-            }
-        };
-        let pose = match b2b_vision::board_pose(&detection, &camera) {
-            Ok(p) => p,
-            Err(e) => {
-                rejected.push(reject(e.to_string()));
-                continue;
-            }
-        };
-        observations.push(Observation {
-            row: cap.row,
-            image,
-            camera_from_target: pose.camera_from_target,
-            board: BoardCapture {
-                base_from_flange: cap.base_from_flange,
-                target_points: detection.target_points,
-                pixels: detection.pixels,
-            },
-            pnp_rms_px: pose.rms_px,
-        });
     }
     Ok(RobotObservations {
         robot: robot.to_owned(),
-        camera,
+        camera: setup.camera,
         observations,
         rejected,
         detect_ms: start.elapsed().as_secs_f64() * 1e3,
@@ -395,19 +424,6 @@ pub fn base_to_base(
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let obs1 = observe_robot(ds, &ids[0])?;
     let obs2 = observe_robot(ds, &ids[1])?;
-    let detect_ms = start.elapsed().as_secs_f64() * 1e3;
-    let solve_start = Instant::now();
-    let he1 = hand_eye(&obs1, HandEyeChoice::Refined, options)?;
-    let he2 = hand_eye(&obs2, HandEyeChoice::Refined, options)?;
-    let b1: Vec<BoardCapture> = obs1.observations.iter().map(|o| o.board.clone()).collect();
-    let b2: Vec<BoardCapture> = obs2.observations.iter().map(|o| o.board.clone()).collect();
-    let joint = refine_base_to_base(
-        [&obs1.camera, &obs2.camera],
-        [&b1, &b2],
-        &initial_from_separate(&he1.estimate, &he2.estimate),
-        options,
-    )
-    .map_err(calib("robot1+robot2"))?;
     let board_centre = match &ds.manifest.target {
         Target::Checkerboard {
             inner_corners,
@@ -419,6 +435,33 @@ pub fn base_to_base(
         ),
         _ => Point3::origin(),
     };
+    let mut result = base_to_base_from_observations([&obs1, &obs2], &board_centre, options)?;
+    result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
+    Ok(result)
+}
+
+/// Base-to-base from both robots' observations (offline or received live).
+/// `board_centre` (in the target frame) centres the workspace over which the
+/// touch error is predicted.
+pub fn base_to_base_from_observations(
+    robots: [&RobotObservations; 2],
+    board_centre: &Point3<f64>,
+    options: &RefineOptions,
+) -> Result<CalibrationResult, PipelineError> {
+    let [obs1, obs2] = robots;
+    let solve_start = Instant::now();
+    let he1 = hand_eye(obs1, HandEyeChoice::Refined, options)?;
+    let he2 = hand_eye(obs2, HandEyeChoice::Refined, options)?;
+    let b1: Vec<BoardCapture> = obs1.observations.iter().map(|o| o.board.clone()).collect();
+    let b2: Vec<BoardCapture> = obs2.observations.iter().map(|o| o.board.clone()).collect();
+    let pair = format!("{}+{}", obs1.robot, obs2.robot);
+    let joint = refine_base_to_base(
+        [&obs1.camera, &obs2.camera],
+        [&b1, &b2],
+        &initial_from_separate(&he1.estimate, &he2.estimate),
+        options,
+    )
+    .map_err(calib(&pair))?;
     let (mean, p95) = predicted_error(
         &joint.covariance,
         &workspace_points(&(joint.base1_from_target * board_centre)),
@@ -427,6 +470,7 @@ pub fn base_to_base(
     let solve_ms = solve_start.elapsed().as_secs_f64() * 1e3;
     let mut rejected = obs1.rejected.clone();
     rejected.extend(obs2.rejected.iter().cloned());
+    let detect_ms = obs1.detect_ms + obs2.detect_ms;
     Ok(CalibrationResult {
         format: RESULT_FORMAT.to_owned(),
         method: "board".to_owned(),
@@ -435,11 +479,11 @@ pub fn base_to_base(
         predicted_touch_error_m: PredictedError { mean, p95 },
         hand_eye: [
             (
-                ids[0].clone(),
+                obs1.robot.clone(),
                 Pose::from_isometry(&joint.flange_from_camera[0]),
             ),
             (
-                ids[1].clone(),
+                obs2.robot.clone(),
                 Pose::from_isometry(&joint.flange_from_camera[1]),
             ),
         ]
@@ -447,8 +491,8 @@ pub fn base_to_base(
         .collect(),
         captures: CaptureSummary {
             used: [
-                (ids[0].clone(), obs1.observations.len()),
-                (ids[1].clone(), obs2.observations.len()),
+                (obs1.robot.clone(), obs1.observations.len()),
+                (obs2.robot.clone(), obs2.observations.len()),
             ]
             .into_iter()
             .collect(),
@@ -457,7 +501,7 @@ pub fn base_to_base(
         timings_ms: Timings {
             detect: detect_ms,
             solve: solve_ms,
-            total: start.elapsed().as_secs_f64() * 1e3,
+            total: detect_ms + solve_ms,
         },
     })
 }

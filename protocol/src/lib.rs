@@ -40,6 +40,9 @@ pub enum ProtocolError {
     /// A covariance that is not symmetric positive semi-definite or not finite.
     #[error("{field}: {reason}")]
     BadCovariance { field: String, reason: String },
+    /// Any other field with a value that cannot be trusted.
+    #[error("{field}: {reason}")]
+    BadField { field: String, reason: String },
 }
 
 /// A rigid transform as it is written in files and messages.
@@ -200,7 +203,7 @@ impl CalibrationResult {
     /// Checks every pose and the covariance.
     pub fn validate(&self) -> Result<(), ProtocolError> {
         if self.format != RESULT_FORMAT {
-            return Err(ProtocolError::BadCovariance {
+            return Err(ProtocolError::BadField {
                 field: "format".into(),
                 reason: format!("expected {RESULT_FORMAT}, found {}", self.format),
             });
@@ -257,6 +260,8 @@ pub struct VerifyReport {
     pub procrustes_angular_error_deg: f64,
     pub within_predicted_p95: f64,
 }
+
+pub mod messages;
 
 #[cfg(test)]
 mod tests {

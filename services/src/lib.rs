@@ -1,6 +1,12 @@
-//! Shared glue of the service binaries: logging set-up and writing result files.
-//! Everything computed lives in `b2b-pipeline`; the binaries parse arguments,
-//! call it, and print.
+//! The service binaries' library: the zenoh bus, the coordinator's journal, the
+//! live agent and coordinator loops, and result files. What is computed lives in
+//! `b2b-pipeline`; this crate wires it to processes, sockets and files.
+
+pub mod agent;
+pub mod bus;
+pub mod coordinator;
+pub mod outputs;
+pub mod store;
 
 use std::path::Path;
 
@@ -32,6 +38,51 @@ pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     serde_json::from_str(&text)
         .with_context(|| format!("{}: not a valid file of this kind", path.display()))
+}
+
+/// The robot pose noise every estimating command takes: one standard deviation
+/// of the flange pose error per capture. The default is the iiwa's repeatability;
+/// give the arm's absolute accuracy when its kinematic model is not calibrated
+/// (systematic error biases a fit without showing in its residuals).
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub struct RobotNoiseArgs {
+    /// Flange translation error per capture, 1 sigma (mm).
+    #[arg(long, default_value_t = 0.05)]
+    pub robot_sigma_mm: f64,
+    /// Flange rotation error per capture, 1 sigma (degrees).
+    #[arg(long, default_value_t = 0.01)]
+    pub robot_sigma_deg: f64,
+}
+
+impl RobotNoiseArgs {
+    /// Refinement options with this noise.
+    pub fn options(&self) -> anyhow::Result<b2b_calib::refine::RefineOptions> {
+        anyhow::ensure!(
+            self.robot_sigma_mm.is_finite() && self.robot_sigma_mm >= 0.0,
+            "--robot-sigma-mm must be a number >= 0"
+        );
+        anyhow::ensure!(
+            self.robot_sigma_deg.is_finite() && self.robot_sigma_deg >= 0.0,
+            "--robot-sigma-deg must be a number >= 0"
+        );
+        Ok(b2b_calib::refine::RefineOptions {
+            robot_noise: b2b_calib::refine::RobotNoise {
+                sigma_t_m: self.robot_sigma_mm * 1e-3,
+                sigma_r_rad: self.robot_sigma_deg.to_radians(),
+            },
+            ..Default::default()
+        })
+    }
+}
+
+/// A flag set by Ctrl-C (SIGINT/SIGTERM), for loops that stop gracefully.
+pub fn stop_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let f = std::sync::Arc::clone(&flag);
+    if let Err(e) = ctrlc::set_handler(move || f.store(true, std::sync::atomic::Ordering::SeqCst)) {
+        tracing::warn!("no Ctrl-C handler: {e}");
+    }
+    flag
 }
 
 /// Runs a command body, printing a one-line reason and exiting non-zero on error

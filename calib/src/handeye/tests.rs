@@ -103,12 +103,12 @@ fn every_solver_recovers_the_truth_without_noise() {
     print_table("noise-free, 30 captures, seeds 1..=6 (max)", &rows);
     for (s, e) in &rows {
         assert!(
-            e[0] < 1e-9 && e[2] < 1e-9,
+            e[0] < 1e-11 && e[2] < 1e-11,
             "{}: translation error {e:?}",
             s.name()
         );
         assert!(
-            e[1] < 1e-9 && e[3] < 1e-9,
+            e[1] < 1e-11 && e[3] < 1e-11,
             "{}: rotation error {e:?}",
             s.name()
         );

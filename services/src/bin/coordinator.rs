@@ -1,14 +1,14 @@
-//! `coordinator`: turns both robots' data into `base1_from_base2`. This build has
-//! the offline commands (`calibrate`, `verify`); the live `run` arrives with the
-//! zenoh layer.
+//! `coordinator`: turns both robots' data into `base1_from_base2`, live over zenoh
+//! (`run`) or offline from a dataset (`calibrate`), and checks a result against
+//! touch points (`verify`).
 
 use std::path::PathBuf;
 
 use anyhow::Context;
-use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::{B2bMethod, base_to_base, load_dataset, verify};
 use b2b_protocol::CalibrationResult;
-use b2b_services::{init_logging, read_json, run_main, write_json};
+use b2b_services::outputs::{print_result, write_result};
+use b2b_services::{RobotNoiseArgs, init_logging, read_json, run_main, stop_flag, write_json};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -24,6 +24,29 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Listen to the agents over zenoh; once every agent heard from has finished,
+    /// compute base1_from_base2, publish it and write RESULT.json (Ctrl-C: compute
+    /// with what has arrived).
+    Run {
+        /// board (multimarker and rgbd are not available live yet).
+        #[arg(long, default_value = "board")]
+        method: String,
+        /// zenoh configuration file (JSON5); default: loopback peer listening on
+        /// tcp/127.0.0.1:7447.
+        #[arg(long)]
+        zenoh: Option<PathBuf>,
+        /// Where every received sample is journalled (a restart resumes from it).
+        #[arg(long, default_value = "coordinator-state")]
+        state_dir: PathBuf,
+        /// Robot ids in order (robot 1 first); default: sorted ids.
+        #[arg(long, value_delimiter = ',')]
+        robots: Option<Vec<String>>,
+        /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        noise: RobotNoiseArgs,
+    },
     /// base1_from_base2 from a two-robot b2b-dataset/1 folder (never reads
     /// ground_truth.json or reference.json).
     Calibrate {
@@ -32,9 +55,11 @@ enum Command {
         /// board, multimarker or rgbd (default: from the dataset's target kind).
         #[arg(long)]
         method: Option<String>,
-        /// Where to write RESULT.json.
+        /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
         #[arg(long)]
         out: PathBuf,
+        #[command(flatten)]
+        noise: RobotNoiseArgs,
     },
     /// Checks a result against pointer-tip touch pairs (touch_points.csv format).
     Verify {
@@ -51,66 +76,53 @@ enum Command {
     },
 }
 
-fn print_result(r: &CalibrationResult) {
-    let t = r.base1_from_base2.t;
-    let q = r.base1_from_base2.q;
-    println!("method {}", r.method);
-    for (robot, n) in &r.captures.used {
-        println!("  {robot}: {n} captures used");
-    }
-    for rej in &r.captures.rejected {
-        println!(
-            "  rejected {} {}: {}",
-            rej.robot,
-            rej.image.as_deref().unwrap_or("-"),
-            rej.reason
-        );
-    }
-    println!(
-        "T_base1_base2 t = [{:.6}, {:.6}, {:.6}] m",
-        t[0], t[1], t[2]
-    );
-    println!(
-        "              q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
-        q[0], q[1], q[2], q[3]
-    );
-    let sd: Vec<f64> = (0..6).map(|i| r.covariance[i][i].max(0.0).sqrt()).collect();
-    println!(
-        "1-sigma: rotation [{:.4}, {:.4}, {:.4}] deg, translation [{:.3}, {:.3}, {:.3}] mm",
-        sd[0].to_degrees(),
-        sd[1].to_degrees(),
-        sd[2].to_degrees(),
-        sd[3] * 1e3,
-        sd[4] * 1e3,
-        sd[5] * 1e3
-    );
-    println!(
-        "predicted touch error: mean {:.3} mm, p95 {:.3} mm",
-        r.predicted_touch_error_m.mean * 1e3,
-        r.predicted_touch_error_m.p95 * 1e3
-    );
-    println!(
-        "timings: detect {:.0} ms, solve {:.0} ms, total {:.0} ms",
-        r.timings_ms.detect, r.timings_ms.solve, r.timings_ms.total
-    );
-}
-
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
     run_main(|| match cli.command {
+        Command::Run {
+            method,
+            zenoh,
+            state_dir,
+            robots,
+            out,
+            noise,
+        } => {
+            anyhow::ensure!(
+                method == "board",
+                "method '{method}' is not available live yet (board only)"
+            );
+            let stop = stop_flag();
+            let opts = b2b_services::coordinator::RunOptions {
+                zenoh,
+                state_dir,
+                robots: 2,
+                order: robots,
+                refine: noise.options()?,
+            };
+            let (result, counters) = b2b_services::coordinator::run(&opts, &stop)?;
+            write_result(&out, &result).context("writing the result")?;
+            print_result(&result);
+            println!(
+                "messages: {} accepted, {} duplicates dropped, {} rejected",
+                counters.accepted, counters.duplicates, counters.rejected
+            );
+            println!("wrote {}", out.display());
+            Ok(())
+        }
         Command::Calibrate {
             dataset,
             method,
             out,
+            noise,
         } => {
             let ds = load_dataset(&dataset)?;
             let method = match method {
                 Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
-            let result = base_to_base(&ds, method, &RefineOptions::default())?;
-            write_json(&out, &result).context("writing the result")?;
+            let result = base_to_base(&ds, method, &noise.options()?)?;
+            write_result(&out, &result).context("writing the result")?;
             print_result(&result);
             println!("wrote {}", out.display());
             Ok(())

@@ -1,0 +1,368 @@
+//! Messages between agents and the coordinator (zenoh payloads, JSON).
+//!
+//! Every message travels in an [`Envelope`]: the schema version, the sending
+//! robot's id and a per-agent sequence number that survives agent restarts. A
+//! receiver runs [`Envelope::validate`] before trusting anything: an unknown
+//! version, a robot id that disagrees with the key expression, or a non-finite
+//! number rejects the message (and the receiver counts it).
+//!
+//! Key expressions (all under [`KEY_ROOT`]):
+//!
+//! | key | payload | who |
+//! |---|---|---|
+//! | `b2b/agent/{robot}/capture` | [`Capture`]: flange pose, board observation, `base_from_target` | agent, per capture |
+//! | `b2b/agent/{robot}/hand_eye` | [`HandEyeUpdate`] | agent, when its captures allow it |
+//! | `b2b/agent/{robot}/status` | [`AgentStatus`] | agent, on every change |
+//! | `b2b/agent/{robot}/history` | queryable: every capture so far, for a (re)started coordinator | agent |
+//! | `b2b/coordinator/result` | [`crate::CalibrationResult`] | coordinator |
+//! | `b2b/coordinator/alive` | liveliness token | coordinator |
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Covariance6, Pose, ProtocolError};
+
+/// The version of the message schema; a receiver rejects any other.
+pub const SCHEMA_VERSION: u32 = 1;
+/// The root of every key expression of the service.
+pub const KEY_ROOT: &str = "b2b";
+
+/// `b2b/agent/{robot}/{topic}`.
+pub fn agent_key(robot: &str, topic: &str) -> String {
+    format!("{KEY_ROOT}/agent/{robot}/{topic}")
+}
+
+/// The key the coordinator publishes results on.
+pub fn result_key() -> String {
+    format!("{KEY_ROOT}/coordinator/result")
+}
+
+/// The coordinator's liveliness token.
+pub fn coordinator_alive_key() -> String {
+    format!("{KEY_ROOT}/coordinator/alive")
+}
+
+/// Robot ids go into key expressions: letters, digits, `-` and `_` only.
+pub fn validate_robot_id(id: &str) -> Result<(), ProtocolError> {
+    if id.is_empty()
+        || id.len() > 64
+        || !id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+    {
+        return Err(ProtocolError::BadField {
+            field: "robot".into(),
+            reason: format!("'{id}' is not a robot id (1-64 of A-Z a-z 0-9 - _)"),
+        });
+    }
+    Ok(())
+}
+
+/// A message with its schema version, sender and sequence number.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Envelope<T> {
+    pub schema: u32,
+    pub robot: String,
+    /// Per agent, strictly increasing across restarts.
+    pub seq: u64,
+    pub body: T,
+}
+
+/// Checks the numbers of a message body.
+pub trait Validate {
+    fn validate(&self) -> Result<(), ProtocolError>;
+}
+
+impl<T: Validate> Envelope<T> {
+    /// Wraps a body.
+    pub fn new(robot: &str, seq: u64, body: T) -> Self {
+        Envelope {
+            schema: SCHEMA_VERSION,
+            robot: robot.to_owned(),
+            seq,
+            body,
+        }
+    }
+
+    /// Checks the version, that the sender is the robot the key names, and the body.
+    pub fn validate(&self, robot_in_key: &str) -> Result<(), ProtocolError> {
+        if self.schema != SCHEMA_VERSION {
+            return Err(ProtocolError::BadField {
+                field: "schema".into(),
+                reason: format!(
+                    "version {} is not the supported {SCHEMA_VERSION}",
+                    self.schema
+                ),
+            });
+        }
+        validate_robot_id(&self.robot)?;
+        if self.robot != robot_in_key {
+            return Err(ProtocolError::BadField {
+                field: "robot".into(),
+                reason: format!(
+                    "message says '{}' but was published under '{robot_in_key}'",
+                    self.robot
+                ),
+            });
+        }
+        self.body.validate()
+    }
+}
+
+fn finite(field: &str, values: &[f64]) -> Result<(), ProtocolError> {
+    for (i, v) in values.iter().enumerate() {
+        if !v.is_finite() {
+            return Err(ProtocolError::NonFinite {
+                field: format!("{field}[{i}]"),
+                value: *v,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Camera intrinsics with OpenCV distortion `k1, k2, p1, p2[, k3[, k4, k5, k6]]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Intrinsics {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub dist: Vec<f64>,
+}
+
+impl Validate for Intrinsics {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        finite("camera", &[self.fx, self.fy, self.cx, self.cy])?;
+        finite("camera.dist", &self.dist)?;
+        if self.fx <= 0.0
+            || self.fy <= 0.0
+            || self.width == 0
+            || self.height == 0
+            || self.dist.len() > 8
+        {
+            return Err(ProtocolError::BadField {
+                field: "camera".into(),
+                reason: "focal lengths and size must be positive, at most 8 distortion terms"
+                    .into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// What the agent saw of the board in one capture.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BoardObservation {
+    /// Corner positions in the target frame (m).
+    pub target_points: Vec<[f64; 3]>,
+    /// The detected corners (px), paired with `target_points`.
+    pub pixels: Vec<[f64; 2]>,
+    #[serde(rename = "T_camera_target")]
+    pub camera_from_target: Pose,
+    /// Per-corner reprojection residual of the board pose (px).
+    pub residuals_px: Vec<f64>,
+    pub rms_px: f64,
+}
+
+/// One capture: the flange pose (with the controller's timestamp), the board
+/// observation or the reason it was rejected, and the hand-eye-corrected board
+/// pose when the agent has a hand-eye.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Capture {
+    /// The capture's index at the agent (stable across agent restarts; the
+    /// receiver de-duplicates on it).
+    pub index: u64,
+    /// Controller time of the flange pose (s since the Unix epoch), when known.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub controller_time_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<String>,
+    #[serde(rename = "T_base_flange")]
+    pub base_from_flange: Pose,
+    pub camera: Intrinsics,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observation: Option<BoardObservation>,
+    /// Why the capture is not usable, when it is not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rejected: Option<String>,
+    /// `base_from_flange * flange_from_camera * camera_from_target`, with the
+    /// agent's hand-eye at the time of the capture.
+    #[serde(
+        rename = "T_base_target",
+        default,
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub base_from_target: Option<Pose>,
+}
+
+impl Validate for Capture {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        self.base_from_flange.to_isometry("T_base_flange")?;
+        self.camera.validate()?;
+        if let Some(t) = self.controller_time_s {
+            finite("controller_time_s", &[t])?;
+        }
+        if let Some(p) = &self.base_from_target {
+            p.to_isometry("T_base_target")?;
+        }
+        match (&self.observation, &self.rejected) {
+            (Some(o), None) => {
+                o.camera_from_target
+                    .to_isometry("observation.T_camera_target")?;
+                if o.target_points.len() != o.pixels.len() || o.target_points.len() < 4 {
+                    return Err(ProtocolError::BadField {
+                        field: "observation".into(),
+                        reason: format!(
+                            "{} target points and {} pixels (need equal counts, at least 4)",
+                            o.target_points.len(),
+                            o.pixels.len()
+                        ),
+                    });
+                }
+                finite("observation.target_points", &o.target_points.concat())?;
+                finite("observation.pixels", &o.pixels.concat())?;
+                finite("observation.residuals_px", &o.residuals_px)?;
+                finite("observation.rms_px", &[o.rms_px])
+            }
+            (None, Some(_)) => Ok(()),
+            _ => Err(ProtocolError::BadField {
+                field: "observation".into(),
+                reason: "a capture has exactly one of an observation and a rejection reason".into(),
+            }),
+        }
+    }
+}
+
+/// The agent's current hand-eye.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HandEyeUpdate {
+    #[serde(rename = "T_flange_camera")]
+    pub flange_from_camera: Pose,
+    pub covariance: Covariance6,
+    pub captures_used: usize,
+    pub reprojection_rms_px: f64,
+}
+
+impl Validate for HandEyeUpdate {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        self.flange_from_camera.to_isometry("T_flange_camera")?;
+        crate::validate_covariance("covariance", &self.covariance)?;
+        finite("reprojection_rms_px", &[self.reprojection_rms_px])
+    }
+}
+
+/// Where an agent is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AgentState {
+    Starting,
+    Capturing,
+    /// Every capture it will take has been published.
+    Finished,
+    Failed,
+}
+
+/// An agent's status line.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AgentStatus {
+    pub state: AgentState,
+    pub good: usize,
+    pub rejected: usize,
+    /// Total number of captures published; with `Finished`, the receiver can
+    /// tell whether it has them all.
+    pub published: u64,
+    /// Largest angle between rotation axes of the motions so far (deg).
+    pub rotation_diversity_deg: f64,
+    pub enough_data: bool,
+    pub message: String,
+}
+
+impl Validate for AgentStatus {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        finite("rotation_diversity_deg", &[self.rotation_diversity_deg])
+    }
+}
+
+impl Validate for crate::CalibrationResult {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        crate::CalibrationResult::validate(self)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn capture() -> Capture {
+        Capture {
+            index: 3,
+            controller_time_s: Some(1.7e9),
+            image: Some("images/003.png".into()),
+            base_from_flange: Pose::IDENTITY,
+            camera: Intrinsics {
+                width: 640,
+                height: 480,
+                fx: 600.0,
+                fy: 600.0,
+                cx: 320.0,
+                cy: 240.0,
+                dist: vec![0.0; 5],
+            },
+            observation: Some(BoardObservation {
+                target_points: vec![[0.0; 3]; 4],
+                pixels: vec![[1.0, 2.0]; 4],
+                camera_from_target: Pose::IDENTITY,
+                residuals_px: vec![0.1; 4],
+                rms_px: 0.1,
+            }),
+            rejected: None,
+            base_from_target: None,
+        }
+    }
+
+    #[test]
+    fn valid_capture_round_trips() {
+        let env = Envelope::new("robot1", 7, capture());
+        let json = serde_json::to_string(&env).unwrap();
+        let back: Envelope<Capture> = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, env);
+        back.validate("robot1").unwrap();
+    }
+
+    #[test]
+    fn wrong_version_robot_and_numbers_are_rejected() {
+        let mut env = Envelope::new("robot1", 1, capture());
+        env.schema = 99;
+        assert!(
+            env.validate("robot1")
+                .unwrap_err()
+                .to_string()
+                .contains("version 99")
+        );
+        let env = Envelope::new("robot1", 1, capture());
+        assert!(
+            env.validate("robot2")
+                .unwrap_err()
+                .to_string()
+                .contains("robot2")
+        );
+        let mut c = capture();
+        if let Some(o) = c.observation.as_mut() {
+            o.pixels[2][0] = f64::NAN;
+        }
+        assert!(Envelope::new("robot1", 1, c).validate("robot1").is_err());
+        let mut c = capture();
+        c.rejected = Some("blur".into());
+        assert!(Envelope::new("robot1", 1, c).validate("robot1").is_err());
+    }
+
+    #[test]
+    fn robot_ids_must_be_key_safe() {
+        assert!(validate_robot_id("robot-1_a").is_ok());
+        for bad in ["", "a/b", "a*", "a b", "é"] {
+            assert!(validate_robot_id(bad).is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,405 @@
+//! `agent run`: one cart's captures onto the bus.
+//!
+//! Per capture the agent publishes one [`Capture`] message (flange pose, board
+//! observation or rejection reason, and `base_from_target` corrected by its
+//! current hand-eye), and whenever its captures allow a hand-eye, a
+//! [`HandEyeUpdate`]. A status message goes out on every change and as a
+//! heartbeat, so a coordinator that starts late still learns what it missed; the
+//! `history` queryable then serves every capture published so far. Sequence
+//! numbers are kept in the state folder, so a restarted agent continues its
+//! sequence; capture indices are the dataset's, so a replay restarted from the
+//! beginning re-sends the same captures and the coordinator drops the repeats.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use b2b_calib::degeneracy::{MotionThresholds, check_motions};
+use b2b_calib::refine::RefineOptions;
+use b2b_pipeline::{
+    HandEyeChoice, Observation, RobotObservations, RobotSetup, hand_eye, observe_capture,
+};
+use b2b_protocol::messages::{
+    AgentState, AgentStatus, BoardObservation, Capture, Envelope, HandEyeUpdate, Intrinsics,
+    agent_key, result_key,
+};
+use b2b_protocol::{CalibrationResult, Pose};
+use zenoh::Wait;
+
+use crate::bus;
+
+/// The persisted sequence counter of one agent.
+#[derive(Debug)]
+pub struct Sequence {
+    path: PathBuf,
+    next: Mutex<u64>,
+}
+
+impl Sequence {
+    /// Continues from the number stored in `dir` (or starts at 1).
+    pub fn open(dir: &Path, robot: &str) -> anyhow::Result<Sequence> {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create state folder {}", dir.display()))?;
+        let path = dir.join(format!("agent-{robot}.seq"));
+        let next = match std::fs::read_to_string(&path) {
+            Ok(text) => {
+                text.trim()
+                    .parse::<u64>()
+                    .with_context(|| format!("{}: not a sequence number", path.display()))?
+                    + 1
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => 1,
+            Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+        };
+        Ok(Sequence {
+            path,
+            next: Mutex::new(next),
+        })
+    }
+
+    /// The next number, stored before it is used.
+    pub fn take(&self) -> anyhow::Result<u64> {
+        let mut next = self
+            .next
+            .lock()
+            .map_err(|_| anyhow::anyhow!("sequence lock poisoned"))?;
+        let n = *next;
+        *next += 1;
+        let tmp = self.path.with_extension("seq.tmp");
+        std::fs::write(&tmp, n.to_string())
+            .and_then(|_| std::fs::rename(&tmp, &self.path))
+            .with_context(|| format!("cannot write {}", self.path.display()))?;
+        Ok(n)
+    }
+}
+
+/// Options of `agent run --replay`.
+#[derive(Debug, Clone)]
+pub struct ReplayOptions {
+    pub robot: String,
+    pub dataset: PathBuf,
+    pub zenoh: Option<PathBuf>,
+    pub state_dir: PathBuf,
+    /// Pause between captures (a real arm takes seconds per pose).
+    pub pace: Duration,
+    /// How long to wait for the coordinator's result after the last capture.
+    pub wait_result: Duration,
+    pub progress: bool,
+}
+
+fn intrinsics(setup: &RobotSetup) -> Intrinsics {
+    let c = &setup.camera;
+    Intrinsics {
+        width: c.width,
+        height: c.height,
+        fx: c.fx,
+        fy: c.fy,
+        cx: c.cx,
+        cy: c.cy,
+        dist: c.dist[..5].to_vec(),
+    }
+}
+
+fn board_observation(o: &Observation) -> BoardObservation {
+    BoardObservation {
+        target_points: o
+            .board
+            .target_points
+            .iter()
+            .map(|p| [p.x, p.y, p.z])
+            .collect(),
+        pixels: o.board.pixels.iter().map(|p| [p.x, p.y]).collect(),
+        camera_from_target: Pose::from_isometry(&o.camera_from_target),
+        residuals_px: o.residuals_px.clone(),
+        rms_px: o.pnp_rms_px,
+    }
+}
+
+/// Replays a dataset's captures for one robot onto the bus, then waits for the
+/// coordinator's result. Returns it when it came.
+pub fn run_replay(
+    opts: &ReplayOptions,
+    stop: &AtomicBool,
+) -> anyhow::Result<Option<CalibrationResult>> {
+    b2b_protocol::messages::validate_robot_id(&opts.robot)?;
+    let ds = b2b_pipeline::load_dataset(&opts.dataset)?;
+    let setup = RobotSetup::from_dataset(&ds, &opts.robot)?;
+    let data = ds
+        .robot(&opts.robot)
+        .with_context(|| {
+            format!(
+                "robot '{}' is not in {}",
+                opts.robot,
+                opts.dataset.display()
+            )
+        })?
+        .clone();
+    let seq = Arc::new(Sequence::open(&opts.state_dir, &opts.robot)?);
+    let session = bus::open(bus::config(opts.zenoh.as_deref(), bus::Role::Agent)?)?;
+    let robot = opts.robot.clone();
+
+    let history: Arc<Mutex<Vec<Vec<u8>>>> = Arc::new(Mutex::new(Vec::new()));
+    let history_for_queries = Arc::clone(&history);
+    let history_key = agent_key(&robot, "history");
+    let reply_key = history_key.clone();
+    let _queryable = session
+        .declare_queryable(&history_key)
+        .callback(move |query| {
+            let items = history_for_queries
+                .lock()
+                .map(|h| h.clone())
+                .unwrap_or_default();
+            for bytes in items {
+                if let Err(e) = query.reply(&reply_key, bytes).wait() {
+                    tracing::warn!("history reply failed: {e}");
+                }
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("cannot declare {history_key}: {e}"))?;
+    let results = session
+        .declare_subscriber(result_key())
+        .wait()
+        .map_err(|e| anyhow::anyhow!("cannot subscribe to results: {e}"))?;
+
+    let status = Arc::new(Mutex::new(AgentStatus {
+        state: AgentState::Starting,
+        good: 0,
+        rejected: 0,
+        published: 0,
+        rotation_diversity_deg: 0.0,
+        enough_data: false,
+        message: format!("replaying {}", opts.dataset.display()),
+    }));
+    let status_key = agent_key(&robot, "status");
+    let publish_status = {
+        let session = session.clone();
+        let status = Arc::clone(&status);
+        let seq = Arc::clone(&seq);
+        let robot = robot.clone();
+        let key = status_key.clone();
+        move || -> anyhow::Result<()> {
+            let body = status
+                .lock()
+                .map_err(|_| anyhow::anyhow!("status lock poisoned"))?
+                .clone();
+            let env = Envelope::new(&robot, seq.take()?, body);
+            session
+                .put(&key, bus::encode(&env))
+                .wait()
+                .map_err(|e| anyhow::anyhow!("publish {key}: {e}"))
+        }
+    };
+    // Heartbeat: the status twice a second until the agent ends.
+    let done = Arc::new(AtomicBool::new(false));
+    let heartbeat = {
+        let done = Arc::clone(&done);
+        let publish = publish_status.clone();
+        std::thread::spawn(move || {
+            while !done.load(Ordering::SeqCst) {
+                if let Err(e) = publish() {
+                    tracing::warn!("status heartbeat: {e:#}");
+                }
+                std::thread::sleep(Duration::from_millis(500));
+            }
+        })
+    };
+
+    let bar = if opts.progress {
+        let bar = indicatif::ProgressBar::new(data.captures.len() as u64);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        bar.set_prefix(robot.clone());
+        bar
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+
+    let capture_key = agent_key(&robot, "capture");
+    let hand_eye_key = agent_key(&robot, "hand_eye");
+    let mut obs = RobotObservations {
+        robot: robot.clone(),
+        camera: setup.camera.clone(),
+        observations: vec![],
+        rejected: vec![],
+        detect_ms: 0.0,
+    };
+    let mut flange_from_camera = None;
+    let options = RefineOptions::default();
+    let thresholds = MotionThresholds::default();
+    let run = (|| -> anyhow::Result<()> {
+        for (index, cap) in data.captures.iter().enumerate() {
+            if stop.load(Ordering::SeqCst) {
+                anyhow::bail!("interrupted after {index} captures");
+            }
+            let started = Instant::now();
+            let observed = observe_capture(&ds, &setup, cap);
+            let mut msg = Capture {
+                index: index as u64,
+                controller_time_s: None,
+                image: cap.image.as_ref().map(|p| p.display().to_string()),
+                base_from_flange: Pose::from_isometry(&cap.base_from_flange),
+                camera: intrinsics(&setup),
+                observation: None,
+                rejected: None,
+                base_from_target: None,
+            };
+            match &observed {
+                Ok(o) => {
+                    msg.observation = Some(board_observation(o));
+                    if let Some(x) = flange_from_camera {
+                        msg.base_from_target = Some(Pose::from_isometry(
+                            &(cap.base_from_flange * x * o.camera_from_target),
+                        ));
+                    }
+                    obs.observations.push(o.clone());
+                }
+                Err(r) => {
+                    msg.rejected = Some(r.reason.clone());
+                    obs.rejected.push(r.clone());
+                }
+            }
+            let bytes = bus::encode(&Envelope::new(&robot, seq.take()?, msg));
+            history
+                .lock()
+                .map_err(|_| anyhow::anyhow!("history lock poisoned"))?
+                .push(bytes.clone());
+            session
+                .put(&capture_key, bytes)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("publish {capture_key}: {e}"))?;
+
+            // A hand-eye as soon as the motions allow one.
+            let poses: Vec<_> = obs
+                .observations
+                .iter()
+                .map(|o| o.board.base_from_flange)
+                .collect();
+            let motion = check_motions(&poses, &thresholds);
+            if motion.is_ok()
+                && let Ok(he) = hand_eye(&obs, HandEyeChoice::Refined, &options)
+            {
+                flange_from_camera = Some(he.estimate.flange_from_camera);
+                let update = HandEyeUpdate {
+                    flange_from_camera: he.result.flange_from_camera,
+                    covariance: he.result.covariance,
+                    captures_used: obs.observations.len(),
+                    reprojection_rms_px: he.result.reprojection_rms_px,
+                };
+                session
+                    .put(
+                        &hand_eye_key,
+                        bus::encode(&Envelope::new(&robot, seq.take()?, update)),
+                    )
+                    .wait()
+                    .map_err(|e| anyhow::anyhow!("publish {hand_eye_key}: {e}"))?;
+            }
+            {
+                let mut s = status
+                    .lock()
+                    .map_err(|_| anyhow::anyhow!("status lock poisoned"))?;
+                s.state = AgentState::Capturing;
+                s.good = obs.observations.len();
+                s.rejected = obs.rejected.len();
+                s.published = index as u64 + 1;
+                s.rotation_diversity_deg = motion.as_ref().map_or(0.0, |m| m.max_axis_angle_deg);
+                s.enough_data = motion.is_ok() && obs.observations.len() >= 10;
+                s.message = match &observed {
+                    Ok(_) => format!("capture {index}: board found"),
+                    Err(r) => format!("capture {index} rejected: {}", r.reason),
+                };
+                bar.set_message(format!(
+                    "good {} rejected {} diversity {:.0} deg {}",
+                    s.good,
+                    s.rejected,
+                    s.rotation_diversity_deg,
+                    if s.enough_data {
+                        "enough data"
+                    } else {
+                        "need more data"
+                    }
+                ));
+            }
+            publish_status()?;
+            bar.inc(1);
+            let spent = started.elapsed();
+            if spent < opts.pace {
+                std::thread::sleep(opts.pace - spent);
+            }
+        }
+        Ok(())
+    })();
+    bar.finish();
+    {
+        let mut s = status
+            .lock()
+            .map_err(|_| anyhow::anyhow!("status lock poisoned"))?;
+        match &run {
+            Ok(()) => {
+                s.state = AgentState::Finished;
+                s.message = "all captures published".into();
+            }
+            Err(e) => {
+                s.state = AgentState::Failed;
+                s.message = format!("{e:#}");
+            }
+        }
+    }
+    publish_status()?;
+    let outcome = match run {
+        Err(e) => Err(e),
+        Ok(()) => {
+            // Stay reachable (history, heartbeat) until the coordinator answers.
+            let deadline = Instant::now() + opts.wait_result;
+            let mut result = None;
+            while Instant::now() < deadline && !stop.load(Ordering::SeqCst) {
+                match results.recv_timeout(Duration::from_millis(200)) {
+                    Ok(Some(sample)) => {
+                        let bytes = sample.payload().to_bytes();
+                        match serde_json::from_slice::<CalibrationResult>(&bytes) {
+                            Ok(r) if r.validate().is_ok() => {
+                                result = Some(r);
+                                break;
+                            }
+                            _ => tracing::warn!("ignored an invalid result message"),
+                        }
+                    }
+                    Ok(None) => {}
+                    Err(e) => {
+                        tracing::warn!("result subscriber: {e}");
+                        break;
+                    }
+                }
+            }
+            Ok(result)
+        }
+    };
+    done.store(true, Ordering::SeqCst);
+    let _ = heartbeat.join();
+    outcome
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sequence_continues_across_restarts() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Sequence::open(dir.path(), "robot1").unwrap();
+        assert_eq!(s.take().unwrap(), 1);
+        assert_eq!(s.take().unwrap(), 2);
+        drop(s);
+        let s = Sequence::open(dir.path(), "robot1").unwrap();
+        assert_eq!(s.take().unwrap(), 3);
+        std::fs::write(dir.path().join("agent-robot2.seq"), "x").unwrap();
+        let err = Sequence::open(dir.path(), "robot2")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("agent-robot2.seq"), "{err}");
+    }
+}

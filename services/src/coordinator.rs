@@ -1,0 +1,196 @@
+//! `coordinator run`: listen to every agent, keep every sample, and compute
+//! `base1_from_base2` once every agent heard from has finished.
+//!
+//! Nothing is lost: each valid sample is journalled (see [`crate::store`]) before
+//! it is used; a restarted coordinator replays the journal, then asks the agents'
+//! `history` queryables for whatever it missed while it was down (an agent's
+//! status says how many captures it has published, so a gap is visible).
+//! Invalid messages are rejected, counted and logged, never trusted.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use b2b_calib::refine::RefineOptions;
+use b2b_pipeline::base_to_base_from_observations;
+use b2b_protocol::CalibrationResult;
+use b2b_protocol::messages::{
+    AgentStatus, Capture, HandEyeUpdate, KEY_ROOT, agent_key, coordinator_alive_key, result_key,
+};
+use nalgebra::Point3;
+use zenoh::Wait;
+use zenoh::query::{ConsolidationMode, QueryTarget};
+
+use crate::bus;
+use crate::store::{Sample, Store};
+
+/// Options of `coordinator run`.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    pub zenoh: Option<PathBuf>,
+    pub state_dir: PathBuf,
+    /// How many robots make a calibration.
+    pub robots: usize,
+    /// Robot order (robot 1 first); default: robot ids sorted.
+    pub order: Option<Vec<String>>,
+    pub refine: RefineOptions,
+}
+
+/// Counters of what arrived.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Counters {
+    pub accepted: usize,
+    pub duplicates: usize,
+    pub rejected: usize,
+}
+
+fn handle(
+    store: &mut Store,
+    counters: &mut Counters,
+    key: &str,
+    bytes: &[u8],
+) -> anyhow::Result<()> {
+    let Some((_, topic)) = bus::parse_agent_key(key) else {
+        return Ok(());
+    };
+    let sample = match topic {
+        "capture" => bus::decode::<Capture>(key, bytes).map(Sample::Capture),
+        "status" => bus::decode::<AgentStatus>(key, bytes).map(Sample::Status),
+        "hand_eye" => bus::decode::<HandEyeUpdate>(key, bytes).map(Sample::HandEye),
+        _ => return Ok(()),
+    };
+    match sample {
+        Ok(sample) => {
+            if store.accept(sample)? {
+                counters.accepted += 1;
+            } else {
+                counters.duplicates += 1;
+            }
+        }
+        Err(reason) => {
+            counters.rejected += 1;
+            tracing::warn!("{reason}");
+        }
+    }
+    Ok(())
+}
+
+fn catch_up(
+    session: &zenoh::Session,
+    store: &mut Store,
+    counters: &mut Counters,
+    selector: &str,
+) -> anyhow::Result<()> {
+    let replies = session
+        .get(selector)
+        .target(QueryTarget::All)
+        .consolidation(ConsolidationMode::None)
+        .timeout(Duration::from_secs(2))
+        .wait()
+        .map_err(|e| anyhow::anyhow!("query {selector}: {e}"))?;
+    while let Ok(reply) = replies.recv() {
+        if let Ok(sample) = reply.result() {
+            let key = sample.key_expr().as_str().replace("/history", "/capture");
+            handle(store, counters, &key, &sample.payload().to_bytes())?;
+        }
+    }
+    Ok(())
+}
+
+/// Computes the result from what the store holds.
+pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationResult> {
+    let ids = match &opts.order {
+        Some(order) => order.clone(),
+        None => store.robots(),
+    };
+    anyhow::ensure!(
+        ids.len() >= 2,
+        "need two robots, heard from {}: {:?}",
+        ids.len(),
+        ids
+    );
+    let o1 = store.observations(&ids[0])?;
+    let o2 = store.observations(&ids[1])?;
+    // The board centre from the corner layout the agents reported.
+    let pts = &o1
+        .observations
+        .first()
+        .context("robot 1 has no usable capture")?
+        .board
+        .target_points;
+    let centre = Point3::from(
+        pts.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / pts.len() as f64,
+    );
+    Ok(base_to_base_from_observations(
+        [&o1, &o2],
+        &centre,
+        &opts.refine,
+    )?)
+}
+
+/// Runs until every agent has finished (or `stop` is set), then computes,
+/// publishes and returns the result.
+pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationResult, Counters)> {
+    let mut store = Store::open(&opts.state_dir)?;
+    if store.skipped_lines > 0 {
+        eprintln!(
+            "warning: {} unreadable journal line(s) skipped (an earlier crash mid-write)",
+            store.skipped_lines
+        );
+    }
+    let session = bus::open(bus::config(opts.zenoh.as_deref(), bus::Role::Coordinator)?)?;
+    let _alive = session
+        .liveliness()
+        .declare_token(coordinator_alive_key())
+        .wait()
+        .map_err(|e| anyhow::anyhow!("liveliness token: {e}"))?;
+    let subscriber = session
+        .declare_subscriber(format!("{KEY_ROOT}/agent/**"))
+        .wait()
+        .map_err(|e| anyhow::anyhow!("cannot subscribe to the agents: {e}"))?;
+    let mut counters = Counters::default();
+    catch_up(
+        &session,
+        &mut store,
+        &mut counters,
+        &agent_key("*", "history"),
+    )?;
+    let mut last_check = Instant::now();
+    loop {
+        if store.complete(opts.robots) || stop.load(Ordering::SeqCst) {
+            break;
+        }
+        match subscriber.recv_timeout(Duration::from_millis(100)) {
+            Ok(Some(sample)) => handle(
+                &mut store,
+                &mut counters,
+                sample.key_expr().as_str(),
+                &sample.payload().to_bytes(),
+            )?,
+            Ok(None) => {}
+            Err(e) => anyhow::bail!("agent subscriber closed: {e}"),
+        }
+        if last_check.elapsed() > Duration::from_millis(500) {
+            last_check = Instant::now();
+            for robot in store.missing() {
+                tracing::info!("asking {robot} for captures missed");
+                catch_up(
+                    &session,
+                    &mut store,
+                    &mut counters,
+                    &agent_key(&robot, "history"),
+                )?;
+            }
+        }
+    }
+    let result = compute(&store, opts)?;
+    let bytes = serde_json::to_vec(&result)?;
+    session
+        .put(result_key(), bytes)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("publish result: {e}"))?;
+    // Give the message a moment to leave before the session closes.
+    std::thread::sleep(Duration::from_millis(300));
+    Ok((result, counters))
+}

@@ -1,0 +1,336 @@
+//! The coordinator's memory: every accepted sample, appended to a journal on disk
+//! (and flushed to the device) before it is used, so a restarted coordinator
+//! resumes with all of them.
+//!
+//! The journal is one JSON object per line. A crash can leave a partial last
+//! line; loading reports it and ignores it (that sample had not been used, and the
+//! agents still have it in their history).
+
+use std::collections::BTreeMap;
+use std::fs::{File, OpenOptions};
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use b2b_calib::camera::CameraModel;
+use b2b_calib::refine::BoardCapture;
+use b2b_pipeline::{Observation, RobotObservations};
+use b2b_protocol::RejectedCapture;
+use b2b_protocol::messages::{AgentState, AgentStatus, Capture, Envelope, HandEyeUpdate};
+use nalgebra::{Point2, Point3};
+use serde::{Deserialize, Serialize};
+
+/// Everything the coordinator keeps.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Sample {
+    Capture(Envelope<Capture>),
+    Status(Envelope<AgentStatus>),
+    HandEye(Envelope<HandEyeUpdate>),
+}
+
+/// The journal file name inside the state folder.
+pub const JOURNAL: &str = "samples.jsonl";
+
+/// Samples by robot, de-duplicated.
+#[derive(Debug)]
+pub struct Store {
+    path: PathBuf,
+    journal: File,
+    captures: BTreeMap<String, BTreeMap<u64, Capture>>,
+    status: BTreeMap<String, (u64, AgentStatus)>,
+    hand_eye: BTreeMap<String, (u64, HandEyeUpdate)>,
+    /// Lines of the journal that could not be read back (a crash mid-write).
+    pub skipped_lines: usize,
+}
+
+impl Store {
+    /// Opens (or creates) the journal in `dir` and replays it.
+    pub fn open(dir: &Path) -> anyhow::Result<Store> {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create state folder {}", dir.display()))?;
+        let path = dir.join(JOURNAL);
+        let mut store = Store {
+            journal: OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&path)
+                .with_context(|| format!("cannot open {}", path.display()))?,
+            path: path.clone(),
+            captures: BTreeMap::new(),
+            status: BTreeMap::new(),
+            hand_eye: BTreeMap::new(),
+            skipped_lines: 0,
+        };
+        // A partial last line (crash mid-write) must not swallow the next sample.
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        if bytes.last().is_some_and(|b| *b != b'\n') {
+            store
+                .journal
+                .write_all(b"\n")
+                .with_context(|| format!("cannot append to {}", path.display()))?;
+        }
+        let reader = BufReader::new(bytes.as_slice());
+        for (i, line) in reader.lines().enumerate() {
+            let line = line.with_context(|| format!("{}: line {}", path.display(), i + 1))?;
+            if line.trim().is_empty() {
+                continue;
+            }
+            match serde_json::from_str::<Sample>(&line) {
+                Ok(sample) => {
+                    store.apply(sample);
+                }
+                Err(e) => {
+                    tracing::warn!("{}: line {} ignored: {e}", path.display(), i + 1);
+                    store.skipped_lines += 1;
+                }
+            }
+        }
+        Ok(store)
+    }
+
+    /// Whether a sample adds something (a capture not yet held, a newer status).
+    fn is_new(&self, sample: &Sample) -> bool {
+        match sample {
+            Sample::Capture(e) => !self
+                .captures
+                .get(&e.robot)
+                .is_some_and(|m| m.contains_key(&e.body.index)),
+            Sample::Status(e) => self
+                .status
+                .get(&e.robot)
+                .is_none_or(|(seq, s)| e.seq > *seq && s != &e.body),
+            Sample::HandEye(e) => self
+                .hand_eye
+                .get(&e.robot)
+                .is_none_or(|(seq, _)| e.seq > *seq),
+        }
+    }
+
+    fn apply(&mut self, sample: Sample) -> bool {
+        if !self.is_new(&sample) {
+            return false;
+        }
+        match sample {
+            Sample::Capture(e) => {
+                self.captures
+                    .entry(e.robot)
+                    .or_default()
+                    .insert(e.body.index, e.body);
+            }
+            Sample::Status(e) => {
+                self.status.insert(e.robot, (e.seq, e.body));
+            }
+            Sample::HandEye(e) => {
+                self.hand_eye.insert(e.robot, (e.seq, e.body));
+            }
+        }
+        true
+    }
+
+    /// Keeps a sample: written and flushed to the journal first, then used.
+    /// Returns whether it was new.
+    pub fn accept(&mut self, sample: Sample) -> anyhow::Result<bool> {
+        if !self.is_new(&sample) {
+            return Ok(false);
+        }
+        let mut line = serde_json::to_vec(&sample)?;
+        line.push(b'\n');
+        self.journal
+            .write_all(&line)
+            .and_then(|_| self.journal.sync_data())
+            .with_context(|| format!("cannot append to {}", self.path.display()))?;
+        Ok(self.apply(sample))
+    }
+
+    /// The robots heard from, in id order.
+    pub fn robots(&self) -> Vec<String> {
+        let mut ids: Vec<String> = self
+            .status
+            .keys()
+            .chain(self.captures.keys())
+            .cloned()
+            .collect();
+        ids.sort();
+        ids.dedup();
+        ids
+    }
+
+    /// Captures held for a robot.
+    pub fn capture_count(&self, robot: &str) -> u64 {
+        self.captures.get(robot).map_or(0, |m| m.len() as u64)
+    }
+
+    pub fn status(&self, robot: &str) -> Option<&AgentStatus> {
+        self.status.get(robot).map(|(_, s)| s)
+    }
+
+    /// Robots whose status says they published more captures than are held.
+    pub fn missing(&self) -> Vec<String> {
+        self.status
+            .iter()
+            .filter(|(robot, (_, s))| s.published > self.capture_count(robot))
+            .map(|(r, _)| r.clone())
+            .collect()
+    }
+
+    /// At least `robots` agents heard from, all finished, every capture held.
+    pub fn complete(&self, robots: usize) -> bool {
+        let ids = self.robots();
+        ids.len() >= robots
+            && ids.iter().all(|r| {
+                self.status(r).is_some_and(|s| {
+                    s.state == AgentState::Finished && s.published == self.capture_count(r)
+                })
+            })
+    }
+
+    /// A robot's captures as the pipeline takes them.
+    pub fn observations(&self, robot: &str) -> anyhow::Result<RobotObservations> {
+        let caps = self
+            .captures
+            .get(robot)
+            .with_context(|| format!("no captures from robot '{robot}'"))?;
+        let first = caps
+            .values()
+            .next()
+            .with_context(|| format!("no captures from robot '{robot}'"))?;
+        let c = &first.camera;
+        let camera = CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist)
+            .map_err(|e| anyhow::anyhow!("robot '{robot}': camera: {e}"))?;
+        let mut observations = Vec::new();
+        let mut rejected = Vec::new();
+        for (index, cap) in caps {
+            if cap.camera != *c {
+                rejected.push(RejectedCapture {
+                    robot: robot.to_owned(),
+                    image: cap.image.clone(),
+                    row: Some(*index as usize + 1),
+                    reason: "camera intrinsics differ from the robot's first capture".into(),
+                });
+                continue;
+            }
+            match (&cap.observation, &cap.rejected) {
+                (Some(o), _) => observations.push(Observation {
+                    row: *index as usize + 1,
+                    image: cap.image.clone(),
+                    camera_from_target: o.camera_from_target.to_isometry("T_camera_target")?,
+                    board: BoardCapture {
+                        base_from_flange: cap.base_from_flange.to_isometry("T_base_flange")?,
+                        target_points: o.target_points.iter().map(|p| Point3::from(*p)).collect(),
+                        pixels: o.pixels.iter().map(|p| Point2::from(*p)).collect(),
+                    },
+                    pnp_rms_px: o.rms_px,
+                    residuals_px: o.residuals_px.clone(),
+                }),
+                (None, reason) => rejected.push(RejectedCapture {
+                    robot: robot.to_owned(),
+                    image: cap.image.clone(),
+                    row: Some(*index as usize + 1),
+                    reason: reason.clone().unwrap_or_default(),
+                }),
+            }
+        }
+        Ok(RobotObservations {
+            robot: robot.to_owned(),
+            camera,
+            observations,
+            rejected,
+            detect_ms: 0.0,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use b2b_protocol::Pose;
+    use b2b_protocol::messages::{BoardObservation, Intrinsics};
+
+    fn capture(index: u64) -> Capture {
+        Capture {
+            index,
+            controller_time_s: None,
+            image: None,
+            base_from_flange: Pose::IDENTITY,
+            camera: Intrinsics {
+                width: 640,
+                height: 480,
+                fx: 600.0,
+                fy: 600.0,
+                cx: 320.0,
+                cy: 240.0,
+                dist: vec![],
+            },
+            observation: Some(BoardObservation {
+                target_points: vec![[0.0; 3]; 4],
+                pixels: vec![[1.0, 1.0]; 4],
+                camera_from_target: Pose::IDENTITY,
+                residuals_px: vec![0.0; 4],
+                rms_px: 0.0,
+            }),
+            rejected: None,
+            base_from_target: None,
+        }
+    }
+
+    fn status(state: AgentState, published: u64) -> AgentStatus {
+        AgentStatus {
+            state,
+            good: published as usize,
+            rejected: 0,
+            published,
+            rotation_diversity_deg: 0.0,
+            enough_data: false,
+            message: String::new(),
+        }
+    }
+
+    #[test]
+    fn duplicates_are_dropped_and_restart_resumes() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let mut s = Store::open(dir.path()).unwrap();
+            assert!(
+                s.accept(Sample::Capture(Envelope::new("robot1", 1, capture(0))))
+                    .unwrap()
+            );
+            assert!(
+                !s.accept(Sample::Capture(Envelope::new("robot1", 2, capture(0))))
+                    .unwrap()
+            );
+            assert!(
+                s.accept(Sample::Capture(Envelope::new("robot1", 3, capture(1))))
+                    .unwrap()
+            );
+            assert!(
+                s.accept(Sample::Status(Envelope::new(
+                    "robot1",
+                    4,
+                    status(AgentState::Finished, 3)
+                )))
+                .unwrap()
+            );
+            assert_eq!(s.missing(), vec!["robot1".to_string()]);
+            assert!(!s.complete(1));
+        }
+        // A crash mid-write leaves half a line.
+        let mut f = OpenOptions::new()
+            .append(true)
+            .open(dir.path().join(JOURNAL))
+            .unwrap();
+        f.write_all(b"{\"kind\":\"capture\",\"sch").unwrap();
+        drop(f);
+        let mut s = Store::open(dir.path()).unwrap();
+        assert_eq!(s.skipped_lines, 1);
+        assert_eq!(s.capture_count("robot1"), 2);
+        assert!(
+            s.accept(Sample::Capture(Envelope::new("robot1", 5, capture(2))))
+                .unwrap()
+        );
+        assert!(s.complete(1));
+        assert!(!s.complete(2));
+        assert_eq!(s.observations("robot1").unwrap().observations.len(), 3);
+    }
+}

@@ -1,0 +1,142 @@
+//! The binaries as operators use them: exit codes, one-line errors, no panics.
+
+use std::path::Path;
+use std::process::Command;
+
+fn agent() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_agent"))
+}
+
+fn coordinator() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_coordinator"))
+}
+
+fn fails_cleanly(cmd: &mut Command, needle: &str) {
+    let out = cmd.output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "expected failure, got success; stderr: {stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "panic: {stderr}");
+    assert!(
+        stderr.contains(needle),
+        "stderr does not mention '{needle}': {stderr}"
+    );
+}
+
+#[test]
+fn help_explains_every_command() {
+    for (mut cmd, words) in [
+        (agent(), vec!["handeye"]),
+        (coordinator(), vec!["calibrate", "verify"]),
+    ] {
+        let out = cmd.arg("--help").output().unwrap();
+        assert!(out.status.success());
+        let text = String::from_utf8_lossy(&out.stdout);
+        for w in words {
+            assert!(text.contains(w), "{text}");
+        }
+    }
+}
+
+#[test]
+fn missing_dataset_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("nowhere");
+    fails_cleanly(
+        agent()
+            .args(["handeye", "--dataset"])
+            .arg(&missing)
+            .args(["--robot", "robot1", "--out"])
+            .arg(tmp.path().join("h.json")),
+        "nowhere",
+    );
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--dataset"])
+            .arg(&missing)
+            .arg("--out")
+            .arg(tmp.path().join("r.json")),
+        "nowhere",
+    );
+}
+
+#[test]
+fn bad_method_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
+    fails_cleanly(
+        agent()
+            .args(["handeye", "--dataset"])
+            .arg(&ds)
+            .args(["--robot", "robot1", "--method", "magic", "--out"])
+            .arg(tmp.path().join("h.json")),
+        "magic",
+    );
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--dataset"])
+            .arg(&ds)
+            .args(["--method", "magic", "--out"])
+            .arg(tmp.path().join("r.json")),
+        "magic",
+    );
+}
+
+#[test]
+fn malformed_result_file_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let result = tmp.path().join("RESULT.json");
+    std::fs::write(&result, "{ not json").unwrap();
+    let touches = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../datasets/sim-checkerboard-2x12/touch_points.csv");
+    fails_cleanly(
+        coordinator()
+            .args(["verify", "--result"])
+            .arg(&result)
+            .arg("--touch-points")
+            .arg(&touches),
+        "RESULT.json",
+    );
+}
+
+#[test]
+fn calibrate_then_verify_writes_conforming_files() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
+    let result = tmp.path().join("RESULT.json");
+    let out = coordinator()
+        .args(["calibrate", "--dataset"])
+        .arg(&ds)
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json = tmp.path().join("VERIFY.json");
+    let out = coordinator()
+        .args(["verify", "--result"])
+        .arg(&result)
+        .arg("--touch-points")
+        .arg(ds.join("touch_points.csv"))
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    r.validate().unwrap();
+    let v: b2b_protocol::VerifyReport =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v.n, 25);
+}

@@ -1,0 +1,410 @@
+//! `sim generate`: a scene file and a seed in, a `b2b-dataset/1` folder out.
+//!
+//! For each robot: draw its true kinematics from its error model; plan viewpoints by
+//! looking at the board from random points of a spherical cap above it (distance,
+//! tilt, azimuth, roll and aim jitter drawn per viewpoint); solve the IK of the
+//! *nominal* model for the flange pose that puts the camera there (as the controller
+//! would), inside the joint limits; let the robot settle (encoder noise,
+//! repeatability); keep the viewpoint only if every inner corner is inside the image
+//! as the *true* camera sees it; render from the true camera pose; write the
+//! *reported* flange pose. Touch pairs: for each point of the shared workspace, both
+//! robots bring a pointer's tip onto it (IK of the true model: the tip physically
+//! touches the point) and the reported tips carry the robots' errors plus tip noise.
+//!
+//! Determinism: one ChaCha8 generator per purpose (robot realisation, planning,
+//! rendering noise, touches), all seeded from `--seed` by stream number, so the output
+//! is a pure function of the scene file and the seed.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use b2b_dataset::{
+    CameraIntrinsics, Capture, Dataset, GroundTruth, Manifest, RobotData, RobotManifest, Target,
+    TouchPair,
+};
+use nalgebra::{Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng as _, SeedableRng};
+
+use crate::kinematics::{Arm, IkOptions};
+use crate::render::{RenderSettings, Renderer, SceneGeometry};
+use crate::robot_error::RobotInstance;
+use crate::scene::Scene;
+use crate::sensor::expose;
+use crate::texture::{Checkerboard, NoiseTexture, Texture, Uniform};
+use crate::{Iso3, Rng, SimError, image_io};
+
+/// A generator stream: `purpose`, `robot` and `index` select independent sequences.
+fn stream(seed: u64, purpose: u64, robot: usize, index: usize) -> Rng {
+    let mut rng = Rng::seed_from_u64(seed);
+    rng.set_stream((purpose << 48) | ((robot as u64) << 32) | index as u64);
+    rng
+}
+
+/// What to produce.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct GenerateOptions {
+    /// Render only these capture indices (0-based, per robot); `None` renders all.
+    /// Everything else (poses, CSV, JSON, the other captures' randomness) is unchanged,
+    /// because every capture draws its noise from its own stream: this is how the
+    /// regeneration test checks a committed dataset without rendering all of it.
+    pub render_only: Option<Vec<usize>>,
+}
+
+/// A camera at `eye` looking at `centre`, rolled about its view axis.
+fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, up_hint: &Vector3<f64>, roll: f64) -> Iso3 {
+    let z = (centre - eye).normalize();
+    // Image "down" (y) roughly along -up_hint projected on the image plane.
+    let mut y = -(up_hint - z * z.dot(up_hint));
+    if y.norm() < 1e-6 {
+        y = z.cross(&Vector3::x());
+    }
+    let y = y.normalize();
+    let x = y.cross(&z);
+    let r = UnitQuaternion::from_matrix(&Matrix3::from_columns(&[x, y, z]))
+        * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), roll);
+    Iso3::from_parts(Translation3::from(eye.coords), r)
+}
+
+/// What `generate` made, besides the files.
+#[derive(Debug, Clone)]
+pub struct Summary {
+    pub captures: Vec<usize>,
+    pub touches: usize,
+    /// Planning attempts per robot.
+    pub attempts: Vec<usize>,
+}
+
+/// Builds the static scene geometry (board, table, boxes) in `base1`.
+pub fn scene_geometry(
+    scene: &Scene,
+    file: &Path,
+) -> Result<(SceneGeometry, Checkerboard, Iso3), SimError> {
+    let b = &scene.board;
+    let board = Checkerboard::new(b.inner_corners, b.square_m, b.margin_m);
+    let base1_from_target = b
+        .base1_from_target
+        .to_iso(file, "board.base1_from_target")?;
+    let mut geo = SceneGeometry::default();
+    geo.add_checkerboard(base1_from_target, board);
+    if let Some(z) = scene.table_z_m {
+        geo.add_quad(
+            Iso3::translation(0.5, 0.0, z),
+            [-1.5, -1.5],
+            [1.5, 1.5],
+            Arc::new(Uniform(0.3)),
+        );
+    }
+    for (i, bx) in scene.boxes.iter().enumerate() {
+        let pose = bx.pose.to_iso(file, &format!("boxes[{i}].pose"))?;
+        let textures: [Arc<dyn Texture>; 6] = std::array::from_fn(|k| {
+            Arc::new(NoiseTexture {
+                seed: bx.texture_seed.wrapping_mul(7).wrapping_add(k as u64),
+                scale_m: 0.04,
+                octaves: 4,
+                mean: 0.5,
+                contrast: 0.35,
+            }) as Arc<dyn Texture>
+        });
+        geo.add_box(pose, bx.size_m, textures);
+    }
+    Ok((geo, board, base1_from_target))
+}
+
+/// Generates the dataset described by `scene_file` into `out`.
+pub fn generate(scene_file: &Path, seed: u64, out: &Path) -> Result<Summary, SimError> {
+    let scene = Scene::load(scene_file)?;
+    generate_scene(&scene, scene_file, seed, out, &GenerateOptions::default())
+}
+
+/// Generates from an already loaded scene; `scene_file` is used in messages and the
+/// manifest's `source`.
+pub fn generate_scene(
+    scene: &Scene,
+    scene_file: &Path,
+    seed: u64,
+    out: &Path,
+    options: &GenerateOptions,
+) -> Result<Summary, SimError> {
+    scene.validate(scene_file)?;
+    let (geometry, board, base1_from_target) = scene_geometry(scene, scene_file)?;
+    let base1_from_base2 = scene
+        .base1_from_base2
+        .to_iso(scene_file, "base1_from_base2")?;
+    let world_from_base = [Iso3::identity(), base1_from_base2];
+    let mut truth = GroundTruth {
+        base1_from_base2: Some(base1_from_base2),
+        ..GroundTruth::default()
+    };
+    let mut robots_manifest = vec![];
+    let mut robots_data = vec![];
+    let mut instances = vec![];
+    let mut summary = Summary {
+        captures: vec![],
+        touches: 0,
+        attempts: vec![],
+    };
+    let corners = b2b_calib::synth::board_points(
+        board.inner_corners[0] as usize,
+        board.inner_corners[1] as usize,
+        board.square_m,
+    );
+    let centre_in_target = Point3::new(
+        (board.inner_corners[0] - 1) as f64 * board.square_m / 2.0,
+        (board.inner_corners[1] - 1) as f64 * board.square_m / 2.0,
+        0.0,
+    );
+    for (r, spec) in scene.robots.iter().enumerate() {
+        let camera = scene.camera(r)?;
+        let renderer = Renderer::new(&camera)?;
+        let flange_from_camera = spec
+            .flange_from_camera
+            .to_iso(scene_file, &format!("robots[{r}].flange_from_camera"))?;
+        let nominal = Arm::new(spec.model);
+        let robot = spec.error.realise(&nominal, &mut stream(seed, 1, r, 0))?;
+        let base_from_world = world_from_base[r].inverse();
+        let base_from_target = base_from_world * base1_from_target;
+        truth
+            .flange_from_camera
+            .insert(spec.id.clone(), flange_from_camera);
+        truth
+            .base_from_target
+            .insert(spec.id.clone(), base_from_target);
+
+        let mut plan = stream(seed, 2, r, 0);
+        let v = &scene.viewpoints;
+        let mut captures = vec![];
+        let mut attempts = 0;
+        let max_attempts = v.count * 400;
+        let up_in_target = base_from_target.inverse().rotation * Vector3::z();
+        while captures.len() < v.count {
+            attempts += 1;
+            if attempts > max_attempts {
+                return Err(SimError::PlanningFailed {
+                    what: format!("viewpoints of {} with the whole board in view", spec.id),
+                    found: captures.len(),
+                    wanted: v.count,
+                    attempts: max_attempts,
+                });
+            }
+            let tilt = plan.random_range(0.0..=v.max_tilt_deg.to_radians());
+            let azimuth = plan.random_range(0.0..std::f64::consts::TAU);
+            let dist = plan.random_range(v.distance_m[0]..=v.distance_m[1]);
+            let roll = plan.random_range(-1.0..=1.0) * v.max_roll_deg.to_radians();
+            let jitter = Vector3::new(
+                plan.random_range(-1.0..=1.0),
+                plan.random_range(-1.0..=1.0),
+                0.0,
+            ) * v.look_jitter_m;
+            // The printed side faces -z of the target frame.
+            let dir = Vector3::new(
+                tilt.sin() * azimuth.cos(),
+                tilt.sin() * azimuth.sin(),
+                -tilt.cos(),
+            );
+            let eye = centre_in_target + dir * dist;
+            let target_from_camera =
+                look_at(&eye, &(centre_in_target + jitter), &up_in_target, roll);
+            let wanted_flange =
+                base_from_target * target_from_camera * flange_from_camera.inverse();
+            let Ok(q) =
+                robot
+                    .nominal
+                    .ik(&wanted_flange, &Arm::comfortable(), &IkOptions::default())
+            else {
+                continue;
+            };
+            let state = robot.settle(&q, &mut plan);
+            let base_from_camera = state.true_base_from_flange * flange_from_camera;
+            let camera_from_target = base_from_camera.inverse() * base_from_target;
+            let m = v.min_margin_px;
+            let all_in = corners.iter().all(|p| {
+                camera.project(&(camera_from_target * p)).is_some_and(|uv| {
+                    uv.x >= m
+                        && uv.y >= m
+                        && uv.x <= camera.width as f64 - 1.0 - m
+                        && uv.y <= camera.height as f64 - 1.0 - m
+                })
+            });
+            if !all_in {
+                continue;
+            }
+            let k = captures.len();
+            let mut noise = stream(seed, 3, r, k);
+            let rel_image = PathBuf::from(format!("images/{k:03}.png"));
+            let rel_depth = scene
+                .depth
+                .map(|_| PathBuf::from(format!("depth/{k:03}.png")));
+            let render = options
+                .render_only
+                .as_ref()
+                .is_none_or(|only| only.contains(&k));
+            let camera_from_world = (world_from_base[r] * base_from_camera).inverse();
+            let mut settings = RenderSettings::ideal();
+            settings.lighting = scene.lighting.clone();
+            if !scene.lux_levels.is_empty() {
+                settings.lighting.lux = scene.lux_levels[k % scene.lux_levels.len()];
+            }
+            settings.optics = scene.optics.clone();
+            let mut geo = geometry.clone();
+            if let Some(occ) = &scene.occluders
+                && noise.random_bool(occ.probability)
+            {
+                // A rectangle 10-25 cm in front of the camera, somewhere in the view.
+                let d = noise.random_range(0.1..0.25);
+                let size = noise.random_range(occ.size_m[0]..=occ.size_m[1]);
+                let length = noise.random_range(0.1..0.3);
+                let (x, y) = (
+                    noise.random_range(-0.3..0.3) * d,
+                    noise.random_range(-0.2..0.2) * d,
+                );
+                let angle = noise.random_range(0.0..std::f64::consts::PI);
+                let camera_from_occluder = Iso3::from_parts(
+                    Translation3::new(x, y, d),
+                    UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle),
+                );
+                geo.add_quad(
+                    camera_from_world.inverse() * camera_from_occluder,
+                    [-length / 2.0, -size / 2.0],
+                    [length / 2.0, size / 2.0],
+                    Arc::new(Uniform(occ.reflectance)),
+                );
+            }
+            if render {
+                let irradiance = renderer.render(&camera_from_world, &geo, &settings);
+                let image = expose(&irradiance, &scene.noise, &mut noise);
+                image_io::write_grey(&out.join(&spec.id).join(&rel_image), &image)?;
+                if let (Some(model), Some(rel)) = (&scene.depth, &rel_depth) {
+                    let d = model.measure(&irradiance, &mut noise);
+                    image_io::write_depth(&out.join(&spec.id).join(rel), &d)?;
+                }
+            }
+            captures.push(Capture {
+                row: k + 1,
+                image: Some(rel_image),
+                depth: rel_depth,
+                base_from_flange: state.reported_base_from_flange,
+                camera_from_target: None,
+            });
+        }
+        summary.captures.push(captures.len());
+        summary.attempts.push(attempts);
+        let c = &spec.camera;
+        robots_manifest.push(RobotManifest {
+            id: spec.id.clone(),
+            camera: Some(CameraIntrinsics {
+                width: c.width,
+                height: c.height,
+                fx: c.fx,
+                fy: c.fy,
+                cx: c.cx,
+                cy: c.cy,
+                dist: if c.dist.len() >= 4 {
+                    c.dist.clone()
+                } else {
+                    vec![0.0; 5]
+                },
+            }),
+            depth_unit_m: scene.depth.map(|d| d.unit_m),
+        });
+        robots_data.push(RobotData {
+            id: spec.id.clone(),
+            captures,
+        });
+        instances.push(robot);
+    }
+
+    let touch_points = match &scene.touch_points {
+        Some(spec) => {
+            let pairs = touches(spec, &instances, &world_from_base, seed)?;
+            summary.touches = pairs.len();
+            Some(pairs)
+        }
+        None => None,
+    };
+    let mut manifest = Manifest::new(
+        scene.name.clone(),
+        Target::Checkerboard {
+            inner_corners: board.inner_corners,
+            square_m: board.square_m,
+        },
+        robots_manifest,
+    );
+    let scene_name = scene_file
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    manifest.source = format!(
+        "b2b-sim: `sim generate --scene {scene_name} --seed {seed}`; rendered, with simulated robot error"
+    );
+    manifest.license = scene.license.clone();
+    let dataset = Dataset {
+        root: out.to_owned(),
+        manifest,
+        robots: robots_data,
+        touch_points,
+    };
+    dataset.write(out)?;
+    b2b_dataset::write_ground_truth(out, &truth)?;
+    Ok(summary)
+}
+
+fn touches(
+    spec: &crate::scene::TouchSpec,
+    robots: &[RobotInstance],
+    world_from_base: &[Iso3; 2],
+    seed: u64,
+) -> Result<Vec<TouchPair>, SimError> {
+    let mut rng = stream(seed, 4, 0, 0);
+    let tool = Iso3::translation(0.0, 0.0, spec.tool_length_m);
+    let mut out = vec![];
+    let mut attempts = 0;
+    let max_attempts = spec.count * 200 + 10;
+    while out.len() < spec.count {
+        attempts += 1;
+        if attempts > max_attempts {
+            return Err(SimError::PlanningFailed {
+                what: "touch points reachable by both robots".into(),
+                found: out.len(),
+                wanted: spec.count,
+                attempts: max_attempts,
+            });
+        }
+        let p = Point3::new(
+            rng.random_range(spec.region_min[0]..=spec.region_max[0]),
+            rng.random_range(spec.region_min[1]..=spec.region_max[1]),
+            rng.random_range(spec.region_min[2]..=spec.region_max[2]),
+        );
+        let mut tips = [Point3::origin(); 2];
+        let mut ok = true;
+        for (r, robot) in robots.iter().enumerate() {
+            let p_in_base = world_from_base[r].inverse() * p;
+            // Pointer straight down, turned about the vertical at random.
+            let yaw = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+            let rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw)
+                * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+            let base_from_tip = Iso3::from_parts(Translation3::from(p_in_base.coords), rot);
+            let wanted = base_from_tip * tool.inverse();
+            // The tip physically touches the point: solve with the true kinematics.
+            let Ok(q) = robot
+                .true_arm
+                .ik(&wanted, &Arm::comfortable(), &IkOptions::default())
+            else {
+                ok = false;
+                break;
+            };
+            let state = robot.settle(&q, &mut rng);
+            let tip_noise: Vector3<f64> = Vector3::from_fn(|_, _| {
+                rand_distr::Distribution::<f64>::sample(&rand_distr::StandardNormal, &mut rng)
+            }) * spec.tip_sigma_m;
+            tips[r] = state.reported_base_from_flange * tool * Point3::origin() + tip_noise;
+        }
+        if ok {
+            out.push(TouchPair {
+                row: out.len() + 1,
+                tip1_in_base1: tips[0],
+                tip2_in_base2: tips[1],
+            });
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,78 @@
+//! The crate's one error type.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong at the vision boundary. Each variant says which
+/// file or which input was at fault and why; nothing here panics on bad input.
+#[derive(Debug, thiserror::Error)]
+pub enum VisionError {
+    /// The file could not be read at all (missing, a directory, no permission).
+    #[error("{}: cannot read image file: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The bytes are not an image OpenCV can decode (empty, truncated, random bytes).
+    #[error("{source_name}: not a decodable image ({reason})")]
+    CorruptImage { source_name: String, reason: String },
+    /// A 16-bit image (typically a depth PNG) where an 8-bit intensity image is needed.
+    #[error("{source_name}: 16-bit image, expected 8-bit")]
+    SixteenBit { source_name: String },
+    /// Some other pixel format (float, signed, an odd channel count).
+    #[error("{source_name}: unsupported pixel format: {what}")]
+    UnsupportedImage { source_name: String, what: String },
+    /// A zero-sized image or raw buffer whose length does not match its size.
+    #[error("invalid image: {0}")]
+    InvalidImage(String),
+    /// The checkerboard description itself is unusable.
+    #[error("invalid checkerboard spec: {0}")]
+    InvalidSpec(String),
+    /// Neither detector found a board of the requested size.
+    #[error(
+        "no {cols}x{rows} checkerboard (inner corners) found in the {width}x{height} image \
+         (sharpness: variance of Laplacian {laplacian_var:.1})"
+    )]
+    BoardNotFound {
+        cols: usize,
+        rows: usize,
+        width: u32,
+        height: u32,
+        laplacian_var: f64,
+    },
+    /// No board was found and the image is so smooth that it is most likely out of
+    /// focus or motion-blurred.
+    #[error(
+        "no checkerboard found and the image looks blurred: variance of Laplacian \
+         {laplacian_var:.1} < {threshold}"
+    )]
+    Blurred { laplacian_var: f64, threshold: f64 },
+    /// Fewer corners than the spec or the pose solver needs.
+    #[error("too few corners: {found}, need {needed}")]
+    TooFewCorners { found: usize, needed: usize },
+    /// The square colours do not fix which corner is the origin (a board that looks
+    /// the same turned by 180°, inverted colours, or too little contrast).
+    #[error("ambiguous board orientation: {0}")]
+    AmbiguousOrientation(String),
+    /// A detection given to the pose solver is inconsistent or the solver failed.
+    #[error("board pose: {0}")]
+    Pose(String),
+    /// OpenCV threw; `context` says which call.
+    #[error("OpenCV {context}: {source}")]
+    OpenCv {
+        context: &'static str,
+        #[source]
+        source: opencv::Error,
+    },
+}
+
+/// Attaches the name of the OpenCV call to an `opencv::Error`.
+pub(crate) trait CvContext<T> {
+    fn cv(self, context: &'static str) -> Result<T, VisionError>;
+}
+
+impl<T> CvContext<T> for opencv::Result<T> {
+    fn cv(self, context: &'static str) -> Result<T, VisionError> {
+        self.map_err(|source| VisionError::OpenCv { context, source })
+    }
+}

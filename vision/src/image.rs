@@ -1,0 +1,180 @@
+//! Loading images as 8-bit grey.
+//!
+//! Files are read with `std::fs` and decoded with `imdecode`, not `imread`: `imread`
+//! answers a missing file, a directory and a corrupt PNG alike with an empty `Mat`,
+//! while reading the bytes ourselves lets each failure say what it was. Decoding uses
+//! `IMREAD_UNCHANGED` so that a 16-bit depth PNG is recognised and refused instead of
+//! being silently scaled down to 8 bits.
+
+use std::path::Path;
+
+use opencv::core::{self, Mat, Vector};
+use opencv::prelude::*;
+use opencv::{imgcodecs, imgproc};
+
+use crate::error::{CvContext, VisionError};
+
+/// An 8-bit, single-channel, continuous OpenCV image.
+#[derive(Debug)]
+pub struct GrayImage {
+    mat: Mat,
+}
+
+impl GrayImage {
+    /// Wraps a `Mat` that must be non-empty `CV_8UC1`; a non-continuous view is copied.
+    pub fn from_mat(mat: Mat) -> Result<Self, VisionError> {
+        if mat.empty() || mat.rows() <= 0 || mat.cols() <= 0 {
+            return Err(VisionError::InvalidImage("empty image".into()));
+        }
+        if mat.typ() != core::CV_8UC1 {
+            return Err(VisionError::InvalidImage(format!(
+                "expected an 8-bit single-channel Mat, got depth {} with {} channels",
+                mat.depth(),
+                mat.channels()
+            )));
+        }
+        let mat = if mat.is_continuous() {
+            mat
+        } else {
+            mat.try_clone().cv("Mat::clone")?
+        };
+        Ok(GrayImage { mat })
+    }
+
+    /// Builds an image from row-major grey values.
+    pub fn from_raw(width: u32, height: u32, pixels: &[u8]) -> Result<Self, VisionError> {
+        let n = width as usize * height as usize;
+        if n == 0 || pixels.len() != n {
+            return Err(VisionError::InvalidImage(format!(
+                "{width}x{height} image needs {n} bytes, got {}",
+                pixels.len()
+            )));
+        }
+        let rows = i32::try_from(height)
+            .map_err(|_| VisionError::InvalidImage(format!("height {height} too large")))?;
+        let cols = i32::try_from(width)
+            .map_err(|_| VisionError::InvalidImage(format!("width {width} too large")))?;
+        let view =
+            Mat::new_rows_cols_with_data(rows, cols, pixels).cv("Mat::new_rows_cols_with_data")?;
+        GrayImage::from_mat(view.try_clone().cv("Mat::clone")?)
+    }
+
+    pub fn width(&self) -> u32 {
+        self.mat.cols() as u32
+    }
+
+    pub fn height(&self) -> u32 {
+        self.mat.rows() as u32
+    }
+
+    /// The underlying `CV_8UC1` Mat.
+    pub fn mat(&self) -> &Mat {
+        &self.mat
+    }
+
+    /// Row-major pixel bytes (`width * height` of them).
+    pub fn pixels(&self) -> &[u8] {
+        // The constructor guarantees a continuous CV_8UC1 Mat, for which this cannot fail.
+        self.mat.data_bytes().unwrap_or(&[])
+    }
+
+    /// Bilinearly interpolated grey value at a pixel position (OpenCV convention: the
+    /// centre of the top-left pixel is (0, 0)); `None` outside the image.
+    pub fn sample(&self, u: f64, v: f64) -> Option<f64> {
+        let (w, h) = (self.width() as usize, self.height() as usize);
+        if !(u >= 0.0 && v >= 0.0 && u <= (w - 1) as f64 && v <= (h - 1) as f64) {
+            return None;
+        }
+        let (x0, y0) = (u.floor() as usize, v.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (fx, fy) = (u - x0 as f64, v - y0 as f64);
+        let p = self.pixels();
+        let at = |x: usize, y: usize| f64::from(p[y * w + x]);
+        let top = at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx;
+        let bottom = at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx;
+        Some(top * (1.0 - fy) + bottom * fy)
+    }
+
+    /// Variance of the 3x3 Laplacian: a cheap sharpness measure (in grey levels²).
+    pub fn laplacian_variance(&self) -> Result<f64, VisionError> {
+        let mut lap = Mat::default();
+        imgproc::laplacian(
+            &self.mat,
+            &mut lap,
+            core::CV_64F,
+            3,
+            1.0,
+            0.0,
+            core::BORDER_DEFAULT,
+        )
+        .cv("laplacian")?;
+        let mut mean = Vector::<f64>::new();
+        let mut std = Vector::<f64>::new();
+        core::mean_std_dev(&lap, &mut mean, &mut std, &core::no_array()).cv("meanStdDev")?;
+        let s = std.get(0).cv("meanStdDev result")?;
+        Ok(s * s)
+    }
+}
+
+/// Loads an image file as 8-bit grey. Colour images are converted (BGR weights);
+/// 16-bit images are refused rather than rescaled.
+pub fn load_gray(path: &Path) -> Result<GrayImage, VisionError> {
+    let bytes = std::fs::read(path).map_err(|source| VisionError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    decode_gray(&bytes, &path.display().to_string())
+}
+
+/// Decodes an encoded image (PNG, JPEG, ...) held in memory as 8-bit grey;
+/// `source_name` is used in error messages.
+pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionError> {
+    let corrupt = |reason: &str| VisionError::CorruptImage {
+        source_name: source_name.to_owned(),
+        reason: reason.to_owned(),
+    };
+    if bytes.is_empty() {
+        return Err(corrupt("the file is empty"));
+    }
+    let buf = Vector::<u8>::from_slice(bytes);
+    // OpenCV's decoders report failure as an empty Mat, or sometimes throw.
+    let mat = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_UNCHANGED)
+        .map_err(|e| corrupt(&format!("decoder error: {}", e.message)))?;
+    if mat.empty() {
+        return Err(corrupt("no OpenCV decoder accepts these bytes"));
+    }
+    match mat.depth() {
+        core::CV_8U => {}
+        core::CV_16U => {
+            return Err(VisionError::SixteenBit {
+                source_name: source_name.to_owned(),
+            });
+        }
+        d => {
+            return Err(VisionError::UnsupportedImage {
+                source_name: source_name.to_owned(),
+                what: format!("OpenCV depth code {d}, expected 8-bit unsigned"),
+            });
+        }
+    }
+    let code = match mat.channels() {
+        1 => None,
+        3 => Some(imgproc::COLOR_BGR2GRAY),
+        4 => Some(imgproc::COLOR_BGRA2GRAY),
+        c => {
+            return Err(VisionError::UnsupportedImage {
+                source_name: source_name.to_owned(),
+                what: format!("{c} channels"),
+            });
+        }
+    };
+    let gray = match code {
+        None => mat,
+        Some(code) => {
+            let mut g = Mat::default();
+            imgproc::cvt_color(&mat, &mut g, code, 0).cv("cvtColor")?;
+            g
+        }
+    };
+    GrayImage::from_mat(gray)
+}
