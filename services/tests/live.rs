@@ -1,0 +1,174 @@
+//! Two agents and a coordinator as separate processes, zenoh peers on loopback,
+//! replaying the simulator's two-robot dataset: the live result equals the
+//! offline one, and killing an agent or the coordinator mid-run and restarting
+//! them loses nothing.
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use b2b_protocol::CalibrationResult;
+
+fn dataset() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+struct Net {
+    dir: tempfile::TempDir,
+    coordinator_cfg: PathBuf,
+    agent_cfg: PathBuf,
+}
+
+fn net() -> Net {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let coordinator_cfg = dir.path().join("coordinator.json5");
+    let agent_cfg = dir.path().join("agent.json5");
+    std::fs::write(
+        &coordinator_cfg,
+        format!(
+            r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
+        ),
+    )
+    .unwrap();
+    std::fs::write(
+        &agent_cfg,
+        format!(
+            r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:0"] }}, connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
+        ),
+    )
+    .unwrap();
+    Net { dir, coordinator_cfg, agent_cfg }
+}
+
+fn coordinator(net: &Net) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+        .arg(&net.coordinator_cfg)
+        .arg("--state-dir")
+        .arg(net.dir.path().join("coordinator-state"))
+        .arg("--out")
+        .arg(net.dir.path().join("RESULT.json"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn agent(net: &Net, robot: &str, pace_ms: u64) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["run", "--quiet", "--robot", robot, "--replay"])
+        .arg(dataset())
+        .arg("--zenoh")
+        .arg(&net.agent_cfg)
+        .arg("--state-dir")
+        .arg(net.dir.path().join(format!("agent-state-{robot}")))
+        .args(["--pace-ms", &pace_ms.to_string(), "--wait-result-s", "60"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn wait(child: &mut Child, what: &str, limit: Duration) {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut err = String::new();
+            if let Some(mut e) = child.stderr.take() {
+                use std::io::Read;
+                let _ = e.read_to_string(&mut err);
+            }
+            assert!(status.success(), "{what} failed: {err}");
+            return;
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("{what} did not finish within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn offline_result(dir: &Path) -> CalibrationResult {
+    let out = dir.join("OFFLINE.json");
+    let status = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["calibrate", "--dataset"])
+        .arg(dataset())
+        .arg("--out")
+        .arg(&out)
+        .stdout(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+}
+
+fn assert_same(live: &CalibrationResult, offline: &CalibrationResult) {
+    for i in 0..3 {
+        assert!((live.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9, "{live:?} vs {offline:?}");
+    }
+    for i in 0..4 {
+        assert!((live.base1_from_base2.q[i] - offline.base1_from_base2.q[i]).abs() < 1e-9);
+    }
+    assert_eq!(live.captures.used, offline.captures.used);
+}
+
+fn read_result(net: &Net) -> CalibrationResult {
+    serde_json::from_str(&std::fs::read_to_string(net.dir.path().join("RESULT.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn live_run_over_zenoh_matches_the_offline_calibration() {
+    let net = net();
+    let mut c = coordinator(&net);
+    let mut a1 = agent(&net, "robot1", 0);
+    let mut a2 = agent(&net, "robot2", 0);
+    wait(&mut c, "coordinator", Duration::from_secs(120));
+    wait(&mut a1, "agent robot1", Duration::from_secs(30));
+    wait(&mut a2, "agent robot2", Duration::from_secs(30));
+    assert_same(&read_result(&net), &offline_result(net.dir.path()));
+    // Both agents' ROS and OpenCV outputs are written beside the result.
+    assert!(net.dir.path().join("RESULT.ros.yaml").exists());
+    assert!(net.dir.path().join("RESULT.opencv.yml").exists());
+}
+
+#[test]
+fn killed_and_restarted_processes_lose_nothing() {
+    let net = net();
+    let mut c = coordinator(&net);
+    let mut a1 = agent(&net, "robot1", 300);
+    let mut a2 = agent(&net, "robot2", 300);
+    // Mid-run (some samples journalled, captures still coming): kill agent 1 and
+    // the coordinator outright, then start them again.
+    let journal = net.dir.path().join("coordinator-state/samples.jsonl");
+    let start = Instant::now();
+    while std::fs::read_to_string(&journal).map_or(0, |t| t.lines().count()) < 6 {
+        assert!(start.elapsed() < Duration::from_secs(30), "nothing arrived at the coordinator");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    a1.kill().unwrap();
+    let _ = a1.wait();
+    c.kill().unwrap();
+    let _ = c.wait();
+    let kept = std::fs::read_to_string(&journal).unwrap().lines().count();
+    let published_by_robot2 = std::fs::read_to_string(net.dir.path().join("agent-state-robot2/agent-robot2.seq")).unwrap();
+    assert!(kept >= 6 && !published_by_robot2.is_empty());
+    let seq_before: u64 =
+        std::fs::read_to_string(net.dir.path().join("agent-state-robot1/agent-robot1.seq")).unwrap().trim().parse().unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let mut c = coordinator(&net);
+    let mut a1 = agent(&net, "robot1", 50);
+    wait(&mut c, "restarted coordinator", Duration::from_secs(120));
+    wait(&mut a1, "restarted agent robot1", Duration::from_secs(30));
+    wait(&mut a2, "agent robot2", Duration::from_secs(30));
+    let seq_after: u64 =
+        std::fs::read_to_string(net.dir.path().join("agent-state-robot1/agent-robot1.seq")).unwrap().trim().parse().unwrap();
+    assert!(seq_after > seq_before, "the restarted agent did not continue its sequence");
+    assert_same(&read_result(&net), &offline_result(net.dir.path()));
+}
