@@ -84,29 +84,7 @@ impl CameraModel {
     /// Distorts normalised image coordinates, returning also the 2x2 Jacobian
     /// `d(xd, yd) / d(x, y)`.
     fn distort(&self, x: f64, y: f64) -> (f64, f64, [[f64; 2]; 2], f64) {
-        let [k1, k2, p1, p2, k3, k4, k5, k6] = self.dist;
-        let r2 = x * x + y * y;
-        let r4 = r2 * r2;
-        let r6 = r4 * r2;
-        let num = 1.0 + k1 * r2 + k2 * r4 + k3 * r6;
-        let den = 1.0 + k4 * r2 + k5 * r4 + k6 * r6;
-        let radial = num / den;
-        let dnum = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4;
-        let dden = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4;
-        let drad = (dnum * den - num * dden) / (den * den);
-        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        let j = [
-            [
-                radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x,
-                2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y,
-            ],
-            [
-                2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y,
-                radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x,
-            ],
-        ];
-        (xd, yd, j, r2)
+        distort_normalised(&self.dist, x, y)
     }
 
     /// Projects a point in the camera frame. `None` when it is not in front of
@@ -197,6 +175,37 @@ impl CameraModel {
         }
         Vector2::new(x, y)
     }
+}
+
+/// OpenCV's distortion of normalised image coordinates `(x, y)` with coefficients
+/// `k1, k2, p1, p2, k3, k4, k5, k6`: the distorted coordinates, the 2x2 Jacobian
+/// `d(xd, yd) / d(x, y)` and `r²`. Shared by the camera model and the simulator's
+/// renderer, so the two can never disagree.
+pub fn distort_normalised(dist: &[f64; 8], x: f64, y: f64) -> (f64, f64, [[f64; 2]; 2], f64) {
+    let [k1, k2, p1, p2, k3, k4, k5, k6] = *dist;
+
+    let r2 = x * x + y * y;
+    let r4 = r2 * r2;
+    let r6 = r4 * r2;
+    let num = 1.0 + k1 * r2 + k2 * r4 + k3 * r6;
+    let den = 1.0 + k4 * r2 + k5 * r4 + k6 * r6;
+    let radial = num / den;
+    let dnum = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4;
+    let dden = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4;
+    let drad = (dnum * den - num * dden) / (den * den);
+    let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+    let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+    let j = [
+        [
+            radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x,
+            2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y,
+        ],
+        [
+            2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y,
+            radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x,
+        ],
+    ];
+    (xd, yd, j, r2)
 }
 
 #[cfg(test)]

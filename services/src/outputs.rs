@@ -65,6 +65,20 @@ pub fn write_result(path: &Path, r: &CalibrationResult) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Prints the 1-sigma of a pose covariance `[rx, ry, rz, tx, ty, tz]`.
+pub fn print_sigma(covariance: &b2b_protocol::Covariance6) {
+    let sd: Vec<f64> = (0..6).map(|i| covariance[i][i].max(0.0).sqrt()).collect();
+    println!(
+        "1-sigma: rotation [{:.4}, {:.4}, {:.4}] deg, translation [{:.3}, {:.3}, {:.3}] mm",
+        sd[0].to_degrees(),
+        sd[1].to_degrees(),
+        sd[2].to_degrees(),
+        sd[3] * 1e3,
+        sd[4] * 1e3,
+        sd[5] * 1e3
+    );
+}
+
 /// The summary both `coordinator calibrate` and `coordinator run` print.
 pub fn print_result(r: &CalibrationResult) {
     let t = r.base1_from_base2.t;
@@ -89,16 +103,7 @@ pub fn print_result(r: &CalibrationResult) {
         "              q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
         q[0], q[1], q[2], q[3]
     );
-    let sd: Vec<f64> = (0..6).map(|i| r.covariance[i][i].max(0.0).sqrt()).collect();
-    println!(
-        "1-sigma: rotation [{:.4}, {:.4}, {:.4}] deg, translation [{:.3}, {:.3}, {:.3}] mm",
-        sd[0].to_degrees(),
-        sd[1].to_degrees(),
-        sd[2].to_degrees(),
-        sd[3] * 1e3,
-        sd[4] * 1e3,
-        sd[5] * 1e3
-    );
+    print_sigma(&r.covariance);
     println!(
         "predicted touch error: mean {:.3} mm, p95 {:.3} mm",
         r.predicted_touch_error_m.mean * 1e3,

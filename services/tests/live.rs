@@ -15,7 +15,11 @@ fn dataset() -> PathBuf {
 }
 
 fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
 }
 
 struct Net {
@@ -43,7 +47,11 @@ fn net() -> Net {
         ),
     )
     .unwrap();
-    Net { dir, coordinator_cfg, agent_cfg }
+    Net {
+        dir,
+        coordinator_cfg,
+        agent_cfg,
+    }
 }
 
 fn coordinator(net: &Net) -> Child {
@@ -111,7 +119,10 @@ fn offline_result(dir: &Path) -> CalibrationResult {
 
 fn assert_same(live: &CalibrationResult, offline: &CalibrationResult) {
     for i in 0..3 {
-        assert!((live.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9, "{live:?} vs {offline:?}");
+        assert!(
+            (live.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9,
+            "{live:?} vs {offline:?}"
+        );
     }
     for i in 0..4 {
         assert!((live.base1_from_base2.q[i] - offline.base1_from_base2.q[i]).abs() < 1e-9);
@@ -120,7 +131,8 @@ fn assert_same(live: &CalibrationResult, offline: &CalibrationResult) {
 }
 
 fn read_result(net: &Net) -> CalibrationResult {
-    serde_json::from_str(&std::fs::read_to_string(net.dir.path().join("RESULT.json")).unwrap()).unwrap()
+    serde_json::from_str(&std::fs::read_to_string(net.dir.path().join("RESULT.json")).unwrap())
+        .unwrap()
 }
 
 #[test]
@@ -149,7 +161,10 @@ fn killed_and_restarted_processes_lose_nothing() {
     let journal = net.dir.path().join("coordinator-state/samples.jsonl");
     let start = Instant::now();
     while std::fs::read_to_string(&journal).map_or(0, |t| t.lines().count()) < 6 {
-        assert!(start.elapsed() < Duration::from_secs(30), "nothing arrived at the coordinator");
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "nothing arrived at the coordinator"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     a1.kill().unwrap();
@@ -157,10 +172,16 @@ fn killed_and_restarted_processes_lose_nothing() {
     c.kill().unwrap();
     let _ = c.wait();
     let kept = std::fs::read_to_string(&journal).unwrap().lines().count();
-    let published_by_robot2 = std::fs::read_to_string(net.dir.path().join("agent-state-robot2/agent-robot2.seq")).unwrap();
+    let published_by_robot2 =
+        std::fs::read_to_string(net.dir.path().join("agent-state-robot2/agent-robot2.seq"))
+            .unwrap();
     assert!(kept >= 6 && !published_by_robot2.is_empty());
     let seq_before: u64 =
-        std::fs::read_to_string(net.dir.path().join("agent-state-robot1/agent-robot1.seq")).unwrap().trim().parse().unwrap();
+        std::fs::read_to_string(net.dir.path().join("agent-state-robot1/agent-robot1.seq"))
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap();
     std::thread::sleep(Duration::from_millis(500));
     let mut c = coordinator(&net);
     let mut a1 = agent(&net, "robot1", 50);
@@ -168,7 +189,14 @@ fn killed_and_restarted_processes_lose_nothing() {
     wait(&mut a1, "restarted agent robot1", Duration::from_secs(30));
     wait(&mut a2, "agent robot2", Duration::from_secs(30));
     let seq_after: u64 =
-        std::fs::read_to_string(net.dir.path().join("agent-state-robot1/agent-robot1.seq")).unwrap().trim().parse().unwrap();
-    assert!(seq_after > seq_before, "the restarted agent did not continue its sequence");
+        std::fs::read_to_string(net.dir.path().join("agent-state-robot1/agent-robot1.seq"))
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap();
+    assert!(
+        seq_after > seq_before,
+        "the restarted agent did not continue its sequence"
+    );
     assert_same(&read_result(&net), &offline_result(net.dir.path()));
 }

@@ -257,28 +257,11 @@ pub struct Irradiance {
     pub depth_m: Vec<f32>,
 }
 
-/// OpenCV's distortion of normalised coordinates and its Jacobian (row-major 2x2),
-/// the same formula as `CameraModel::project` (a test checks they agree).
+/// OpenCV's distortion of normalised coordinates and its Jacobian (row-major 2x2):
+/// the camera model's own formula, so renderer and solver agree by construction.
 fn distort(d: &[f64; 8], x: f64, y: f64) -> (f64, f64, [f64; 4]) {
-    let [k1, k2, p1, p2, k3, k4, k5, k6] = *d;
-    let r2 = x * x + y * y;
-    let r4 = r2 * r2;
-    let r6 = r4 * r2;
-    let num = 1.0 + k1 * r2 + k2 * r4 + k3 * r6;
-    let den = 1.0 + k4 * r2 + k5 * r4 + k6 * r6;
-    let radial = num / den;
-    let dnum = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4;
-    let dden = k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4;
-    let drad = (dnum * den - num * dden) / (den * den);
-    let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-    let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-    let j = [
-        radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x,
-        2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y,
-        2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y,
-        radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x,
-    ];
-    (xd, yd, j)
+    let (xd, yd, j, _) = b2b_calib::camera::distort_normalised(d, x, y);
+    (xd, yd, [j[0][0], j[0][1], j[1][0], j[1][1]])
 }
 
 /// Normalised coordinates of pixel `(u, v)` by Newton's method from `guess`; `None`

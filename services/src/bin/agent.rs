@@ -138,7 +138,6 @@ fn main() -> std::process::ExitCode {
             let r = &run.result;
             let t = r.flange_from_camera.t;
             let q = r.flange_from_camera.q;
-            let sd: Vec<f64> = (0..6).map(|i| r.covariance[i][i].max(0.0).sqrt()).collect();
             println!("robot {robot}: method {}", r.method);
             println!(
                 "captures: {} used, {} rejected",
@@ -160,15 +159,7 @@ fn main() -> std::process::ExitCode {
                 "                q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
                 q[0], q[1], q[2], q[3]
             );
-            println!(
-                "1-sigma: rotation [{:.4}, {:.4}, {:.4}] deg, translation [{:.3}, {:.3}, {:.3}] mm",
-                sd[0].to_degrees(),
-                sd[1].to_degrees(),
-                sd[2].to_degrees(),
-                sd[3] * 1e3,
-                sd[4] * 1e3,
-                sd[5] * 1e3
-            );
+            b2b_services::outputs::print_sigma(&r.covariance);
             println!(
                 "reprojection RMS {:.3} px; detect {:.0} ms, solve {:.0} ms",
                 r.reprojection_rms_px, r.timings_ms.detect, r.timings_ms.solve

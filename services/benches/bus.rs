@@ -1,0 +1,186 @@
+//! The bus between processes, measured.
+//!
+//! 1. zenoh pose-message latency on loopback: this process publishes a flange-pose
+//!    capture message on `b2b/bench/ping`, a separate `b2b-bus-echo` process sends
+//!    it back, and half the round trip is the one-way latency. Reported as p50 /
+//!    p99 (goal p99 <= 1 ms).
+//! 2. A full live replay of `datasets/sim-checkerboard-2x12`: coordinator and two
+//!    agents as processes, detection and the joint solve included, wall time until
+//!    the coordinator has written its result.
+//!
+//! `cargo bench -p b2b-services --bench bus` measures (2000 messages, 3 replays);
+//! under `cargo test --benches` it runs a smoke pass (50 messages, 1 replay).
+//! A custom harness, because criterion reports means, not percentiles.
+
+use std::net::TcpListener;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use b2b_protocol::Pose;
+use b2b_protocol::messages::{Capture, Envelope, Intrinsics};
+use zenoh::Wait;
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .unwrap_or(17448)
+}
+
+fn configs(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    let port = free_port();
+    let listen = dir.join("listen.json5");
+    let connect = dir.join("connect.json5");
+    std::fs::write(
+        &listen,
+        format!(r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#),
+    )
+    .expect("write config");
+    std::fs::write(
+        &connect,
+        format!(r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:0"] }}, connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#),
+    )
+    .expect("write config");
+    (listen, connect)
+}
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+fn pose_message() -> Vec<u8> {
+    let body = Capture {
+        index: 7,
+        controller_time_s: Some(1.79e9),
+        image: None,
+        base_from_flange: Pose {
+            t: [0.51, -0.1, 0.64],
+            q: [0.0, 1.0, 0.0, 0.0],
+        },
+        camera: Intrinsics {
+            width: 1280,
+            height: 720,
+            fx: 910.0,
+            fy: 910.0,
+            cx: 640.0,
+            cy: 360.0,
+            dist: vec![0.0; 5],
+        },
+        observation: None,
+        rejected: Some("latency probe".into()),
+        base_from_target: None,
+    };
+    serde_json::to_vec(&Envelope::new("robot1", 1, body)).expect("serialise")
+}
+
+fn latency(messages: usize) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (listen, connect) = configs(dir.path());
+    let session = b2b_services::bus::open(
+        b2b_services::bus::config(Some(&listen), b2b_services::bus::Role::Coordinator)
+            .expect("config"),
+    )
+    .expect("session");
+    let pongs = session
+        .declare_subscriber("b2b/bench/pong")
+        .wait()
+        .expect("subscribe");
+    let ping = session
+        .declare_publisher("b2b/bench/ping")
+        .wait()
+        .expect("publisher");
+    let mut echo = Command::new(env!("CARGO_BIN_EXE_b2b-bus-echo"))
+        .arg("--zenoh")
+        .arg(&connect)
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn echo");
+    let payload = pose_message();
+    // Wait until the echo answers.
+    let start = Instant::now();
+    loop {
+        ping.put(payload.clone()).wait().expect("put");
+        if let Ok(Some(_)) = pongs.recv_timeout(Duration::from_millis(100)) {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "echo process never answered"
+        );
+    }
+    while let Ok(Some(_)) = pongs.recv_timeout(Duration::from_millis(50)) {}
+    let mut one_way_us = Vec::with_capacity(messages);
+    for _ in 0..messages {
+        let t0 = Instant::now();
+        ping.put(payload.clone()).wait().expect("put");
+        match pongs.recv_timeout(Duration::from_secs(2)) {
+            Ok(Some(_)) => one_way_us.push(t0.elapsed().as_secs_f64() * 1e6 / 2.0),
+            _ => panic!("a ping was lost"),
+        }
+    }
+    let _ = session.put("b2b/bench/stop", "stop").wait();
+    let _ = echo.wait();
+    println!(
+        "zenoh pose message ({} bytes) between processes, one-way over loopback, {} messages: p50 {:.0} us, p99 {:.0} us, max {:.0} us",
+        payload.len(),
+        messages,
+        percentile(&mut one_way_us, 0.5),
+        percentile(&mut one_way_us, 0.99),
+        one_way_us.iter().copied().fold(0.0, f64::max)
+    );
+}
+
+fn replay(runs: usize) {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
+    let mut times = Vec::new();
+    for _ in 0..runs {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (listen, connect) = configs(dir.path());
+        let t0 = Instant::now();
+        let mut coordinator = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+            .arg(&listen)
+            .arg("--state-dir")
+            .arg(dir.path().join("c"))
+            .arg("--out")
+            .arg(dir.path().join("RESULT.json"))
+            .stdout(Stdio::null())
+            .spawn()
+            .expect("coordinator");
+        let agents: Vec<_> = ["robot1", "robot2"]
+            .iter()
+            .map(|robot| {
+                Command::new(env!("CARGO_BIN_EXE_agent"))
+                    .args(["run", "--quiet", "--robot", robot, "--replay"])
+                    .arg(&data)
+                    .arg("--zenoh")
+                    .arg(&connect)
+                    .arg("--state-dir")
+                    .arg(dir.path().join(robot))
+                    .stdout(Stdio::null())
+                    .spawn()
+                    .expect("agent")
+            })
+            .collect();
+        assert!(
+            coordinator.wait().expect("wait").success(),
+            "coordinator failed"
+        );
+        times.push(t0.elapsed().as_secs_f64());
+        for mut a in agents {
+            let _ = a.wait();
+        }
+    }
+    let best = times.iter().copied().fold(f64::INFINITY, f64::min);
+    println!(
+        "live replay of 2 x 12 rendered captures (processes, zenoh, detection, joint solve): best of {runs}: {best:.2} s"
+    );
+}
+
+fn main() {
+    let full = std::env::args().any(|a| a == "--bench");
+    latency(if full { 2000 } else { 50 });
+    replay(if full { 3 } else { 1 });
+}
