@@ -134,6 +134,13 @@ pub enum CornerMethod {
         flags: i32,
         half_window: Option<i32>,
     },
+    /// Not a checkerboard detector: ChArUco corners interpolated from the board's
+    /// ArUco markers and refined by `cornerSubPix` ([`crate::markers::detect_charuco`]).
+    Charuco,
+    /// Not a checkerboard detector: the four corners of each ArUco/AprilTag marker,
+    /// refined by `cornerSubPix` ([`crate::markers::detect_aruco_grid`],
+    /// [`crate::markers::detect_marker`]).
+    ArucoMarkers,
 }
 
 /// The detectors [`detect_checkerboard`] tries, in order (see the crate docs for the
@@ -232,6 +239,11 @@ pub fn find_corners(
     let size = Size::new(spec.cols as i32, spec.rows as i32);
     let mut corners = Vector::<Point2f>::new();
     match method {
+        CornerMethod::Charuco | CornerMethod::ArucoMarkers => {
+            return Err(VisionError::InvalidSpec(format!(
+                "{method:?} is a marker detector, not a checkerboard detector"
+            )));
+        }
         CornerMethod::SectorBased { flags } => {
             let found = calib3d::find_chessboard_corners_sb(img.mat(), size, &mut corners, flags)
                 .cv("findChessboardCornersSB")?;

@@ -57,6 +57,31 @@ pub enum VisionError {
     /// A detection given to the pose solver is inconsistent or the solver failed.
     #[error("board pose: {0}")]
     Pose(String),
+    /// A marker dictionary name that is not one of OpenCV's predefined dictionaries.
+    #[error(
+        "unknown marker dictionary {0:?}: expected one of OpenCV's names, DICT_{{4X4,5X5,6X6,7X7}}_{{50,100,250,1000}}, \
+         DICT_ARUCO_ORIGINAL or DICT_APRILTAG_{{16h5,25h9,36h10,36h11}}"
+    )]
+    UnknownDictionary(String),
+    /// A ChArUco board, marker grid or marker description that is unusable (sizes,
+    /// ids outside the dictionary).
+    #[error("invalid target spec: {0}")]
+    InvalidTarget(String),
+    /// None of the markers the target needs was found in the image.
+    #[error("no {what} found in the {width}x{height} image ({dictionary})")]
+    MarkersNotFound {
+        what: String,
+        dictionary: &'static str,
+        width: u32,
+        height: u32,
+    },
+    /// The one marker asked for appears more than once, so its corners are ambiguous.
+    #[error("marker {id} of {dictionary} appears {count} times in the image")]
+    DuplicateMarker {
+        id: usize,
+        dictionary: &'static str,
+        count: usize,
+    },
     /// OpenCV threw; `context` says which call.
     #[error("OpenCV {context}: {source}")]
     OpenCv {

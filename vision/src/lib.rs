@@ -51,6 +51,14 @@
 //! OpenCV's plain `findChessboardCorners` + `cornerSubPix`; the extra 1.5 ms is
 //! the refinement and the orientation check.
 //!
+//! # Fiducial targets
+//!
+//! [`markers`] detects ChArUco boards ([`detect_charuco`]), ArUco grid boards
+//! ([`detect_aruco_grid`]) and single ArUco/AprilTag markers ([`detect_marker`]) with
+//! OpenCV 4.6's contrib `aruco` module, by the dictionary names of the dataset format
+//! ([`MarkerDictionary`]), and returns the same [`BoardDetection`] as the checkerboard.
+//! A ChArUco board may be partly hidden: the corners seen are returned by id.
+//!
 //! # Orientation
 //!
 //! OpenCV's detectors return the grid starting at any of its four corners. The
@@ -67,6 +75,7 @@ mod error;
 
 pub mod checkerboard;
 pub mod image;
+pub mod markers;
 pub mod pose;
 pub mod synth;
 
@@ -76,4 +85,8 @@ pub use checkerboard::{
 };
 pub use error::VisionError;
 pub use image::{GrayImage, decode_gray, load_gray};
+pub use markers::{
+    ArucoGridSpec, CharucoSpec, MarkerDictionary, detect_aruco_grid, detect_charuco,
+    detect_marker, render_charuco,
+};
 pub use pose::{PoseEstimate, board_pose};

@@ -61,19 +61,7 @@ pub fn board_pose(det: &BoardDetection, camera: &CameraModel) -> Result<PoseEsti
         .map(|p| Point3d::new(p.x, p.y, p.z))
         .collect();
     let image: Vector<Point2d> = det.pixels.iter().map(|p| Point2d::new(p.x, p.y)).collect();
-    let k = Mat::from_slice_2d(&[
-        [camera.fx, 0.0, camera.cx],
-        [0.0, camera.fy, camera.cy],
-        [0.0, 0.0, 1.0],
-    ])
-    .cv("camera matrix")?;
-    // OpenCV accepts 4, 5, 8, 12 or 14 coefficients in the same order as CameraModel.
-    let n_dist = if camera.dist[5..].iter().all(|&d| d == 0.0) {
-        5
-    } else {
-        8
-    };
-    let dist = Vector::<f64>::from_slice(&camera.dist[..n_dist]);
+    let (k, dist) = camera_matrices(camera)?;
     let mut rvec = Mat::default();
     let mut tvec = Mat::default();
     let ok = calib3d::solve_pnp(
@@ -117,6 +105,23 @@ pub fn board_pose(det: &BoardDetection, camera: &CameraModel) -> Result<PoseEsti
         residuals_px,
         rms_px,
     })
+}
+
+/// OpenCV's camera matrix and distortion vector for a camera model. OpenCV accepts
+/// 4, 5, 8, 12 or 14 coefficients in the same order as [`CameraModel`].
+pub(crate) fn camera_matrices(camera: &CameraModel) -> Result<(Mat, Vector<f64>), VisionError> {
+    let k = Mat::from_slice_2d(&[
+        [camera.fx, 0.0, camera.cx],
+        [0.0, camera.fy, camera.cy],
+        [0.0, 0.0, 1.0],
+    ])
+    .cv("camera matrix")?;
+    let n_dist = if camera.dist[5..].iter().all(|&d| d == 0.0) {
+        5
+    } else {
+        8
+    };
+    Ok((k, Vector::<f64>::from_slice(&camera.dist[..n_dist])))
 }
 
 /// Reads a 3-vector that OpenCV returned as a 3x1 or 1x3 `CV_64F` Mat.
