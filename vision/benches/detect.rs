@@ -1,17 +1,23 @@
 //! Detection time per 1280x720 frame: our `detect_checkerboard` (classic detector,
 //! grid-orthogonality refinement, colour-based orientation) against OpenCV's plain
 //! `findChessboardCorners` + `cornerSubPix` on the same rendered frame.
+//! ChArUco: our `detect_charuco` (markers, `interpolateCornersCharuco` with the camera,
+//! grid-orthogonality refinement) against OpenCV's `detectMarkers` +
+//! `interpolateCornersCharuco` alone, on a 7x5-square board drawn by OpenCV and warped
+//! into a 1280x720 frame.
 //! `cargo bench -p b2b-vision`; `cargo test --benches -p b2b-vision` runs each once.
 
 use std::hint::black_box;
 
 use b2b_calib::camera::CameraModel;
 use b2b_vision::synth::{BoardScene, render_checkerboard};
-use b2b_vision::{CheckerboardSpec, detect_checkerboard};
+use b2b_vision::{
+    CharucoSpec, CheckerboardSpec, detect_charuco, detect_checkerboard, render_charuco,
+};
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{Point2f, Size, TermCriteria, Vector};
-use opencv::{calib3d, imgproc};
+use opencv::core::{Mat, Point2f, Scalar, Size, TermCriteria, Vector};
+use opencv::{aruco, calib3d, core, imgproc};
 
 fn frame() -> b2b_vision::GrayImage {
     let spec = CheckerboardSpec {
@@ -71,5 +77,111 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
+fn charuco_spec() -> CharucoSpec {
+    CharucoSpec {
+        squares: [7, 5],
+        square_m: 0.04,
+        marker_m: 0.028,
+        dictionary: "DICT_5X5_100".into(),
+    }
+}
+
+fn camera() -> CameraModel {
+    CameraModel::new(1280, 720, [900.0, 900.0, 639.7, 360.2], &[]).unwrap()
+}
+
+/// The board drawn by OpenCV at 200 px per square, warped by `K·[r1 r2 t]·A⁻¹` into a
+/// 1280x720 frame.
+fn charuco_frame() -> b2b_vision::GrayImage {
+    let spec = charuco_spec();
+    let src = render_charuco(&spec, 200).unwrap();
+    let cam = camera();
+    let r = UnitQuaternion::from_euler_angles(0.3, -0.2, 0.15);
+    let t = Vector3::new(0.02, 0.0, 0.6) - r * Vector3::new(0.14, 0.1, 0.0);
+    let k = nalgebra::Matrix3::new(cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0);
+    let rm = r.to_rotation_matrix();
+    let rt = nalgebra::Matrix3::from_columns(&[
+        rm.matrix().column(0).into_owned(),
+        rm.matrix().column(1).into_owned(),
+        t,
+    ]);
+    let s = 200.0 / spec.square_m;
+    let a = nalgebra::Matrix3::new(s, 0.0, 199.5, 0.0, s, 199.5, 0.0, 0.0, 1.0);
+    let h = k * rt * a.try_inverse().unwrap();
+    let hm = Mat::from_slice_2d(&[
+        [h[(0, 0)], h[(0, 1)], h[(0, 2)]],
+        [h[(1, 0)], h[(1, 1)], h[(1, 2)]],
+        [h[(2, 0)], h[(2, 1)], h[(2, 2)]],
+    ])
+    .unwrap();
+    let mut out = Mat::default();
+    imgproc::warp_perspective(
+        src.mat(),
+        &mut out,
+        &hm,
+        Size::new(1280, 720),
+        imgproc::INTER_LINEAR,
+        core::BORDER_CONSTANT,
+        Scalar::all(128.0),
+    )
+    .unwrap();
+    b2b_vision::GrayImage::from_mat(out).unwrap()
+}
+
+fn bench_charuco(c: &mut Criterion) {
+    let img = charuco_frame();
+    let spec = charuco_spec();
+    let cam = camera();
+    assert_eq!(detect_charuco(&img, &spec, &cam).unwrap().pixels.len(), 24);
+    let mut group = c.benchmark_group("detect_1280x720_charuco_7x5");
+    group.sample_size(20);
+    group.bench_function("b2b_vision::detect_charuco", |b| {
+        b.iter(|| detect_charuco(black_box(&img), &spec, &cam).unwrap())
+    });
+    group.bench_function("opencv detectMarkers+interpolateCornersCharuco", |b| {
+        let dict = aruco::get_predefined_dictionary_i32(5).unwrap();
+        let board = aruco::CharucoBoard::create(7, 5, 0.04, 0.028, &dict).unwrap();
+        let params = aruco::DetectorParameters::create().unwrap();
+        let k = Mat::from_slice_2d(&[
+            [cam.fx, 0.0, cam.cx],
+            [0.0, cam.fy, cam.cy],
+            [0.0, 0.0, 1.0],
+        ])
+        .unwrap();
+        let dist = Vector::<f64>::from_slice(&[0.0; 5]);
+        b.iter(|| {
+            let mut corners = Vector::<Vector<Point2f>>::new();
+            let mut ids = Vector::<i32>::new();
+            let mut rejected = Vector::<Vector<Point2f>>::new();
+            aruco::detect_markers(
+                img.mat(),
+                &dict,
+                &mut corners,
+                &mut ids,
+                &params,
+                &mut rejected,
+            )
+            .unwrap();
+            let mut ch = Vector::<Point2f>::new();
+            let mut ch_ids = Vector::<i32>::new();
+            let n = aruco::interpolate_corners_charuco(
+                &corners,
+                &ids,
+                img.mat(),
+                &board,
+                &mut ch,
+                &mut ch_ids,
+                &k,
+                &dist,
+                2,
+            )
+            .unwrap();
+            assert_eq!(n, 24);
+            ch
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench, bench_charuco);
 criterion_main!(benches);

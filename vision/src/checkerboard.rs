@@ -118,7 +118,8 @@ pub struct BoardDetection {
     pub pixels: Vec<Point2<f64>>,
     /// The detector that produced the corners.
     pub method: CornerMethod,
-    /// Whether [`refine_corners`] ran after it.
+    /// Whether [`refine_corners`] ran after it (for marker corners: whether every
+    /// marker's edge-line refinement succeeded, see [`crate::markers`]).
     pub refined: bool,
 }
 

@@ -86,7 +86,7 @@ pub use checkerboard::{
 pub use error::VisionError;
 pub use image::{GrayImage, decode_gray, load_gray};
 pub use markers::{
-    ArucoGridSpec, CharucoSpec, MarkerDictionary, detect_aruco_grid, detect_charuco,
-    detect_marker, render_charuco,
+    ArucoGridSpec, CharucoSpec, MarkerDictionary, detect_aruco_grid, detect_charuco, detect_marker,
+    render_charuco,
 };
 pub use pose::{PoseEstimate, board_pose};
