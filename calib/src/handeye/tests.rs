@@ -513,12 +513,20 @@ proptest! {
         // Keep to problems that are not near-degenerate (the closed forms lose
         // digits as the axis spread shrinks).
         prop_assume!(rep.max_axis_angle_deg > 20.0);
+        // A solver may decline (few captures whose pairs it cannot use, e.g. near
+        // 180 deg for the quaternion methods) with a named error; it must never
+        // return a wrong number.
         for s in SOLVERS {
-            let (x, w) = s.solve(&bf, &ct).unwrap();
-            let (dt, dr) = pose_distance(&x, &x_true);
-            let (wt, wr) = pose_distance(&w, &w_true);
-            prop_assert!(dt < 1e-7 && dr < 1e-7 && wt < 1e-7 && wr < 1e-7,
-                "{}: X {dt:e} {dr:e}, board {wt:e} {wr:e}", s.name());
+            match s.solve(&bf, &ct) {
+                Ok((x, w)) => {
+                    let (dt, dr) = pose_distance(&x, &x_true);
+                    let (wt, wr) = pose_distance(&w, &w_true);
+                    prop_assert!(dt < 1e-7 && dr < 1e-7 && wt < 1e-7 && wr < 1e-7,
+                        "{}: X {dt:e} {dr:e}, board {wt:e} {wr:e}", s.name());
+                }
+                Err(CalibError::Inconsistent(msg)) if msg.contains("rank deficient") => {}
+                Err(e) => prop_assert!(false, "{}: {e}", s.name()),
+            }
         }
     }
 }
