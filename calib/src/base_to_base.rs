@@ -42,24 +42,13 @@ pub struct BaseToBaseEstimate {
     pub rms_px: f64,
 }
 
-/// The adjoint for left perturbations `[ω, v]` (same as the engine's).
-fn adjoint(m: &Iso3) -> Matrix6<f64> {
-    let r = m.rotation.to_rotation_matrix().into_inner();
-    let mut a = Matrix6::zeros();
-    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
-    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
-    a.fixed_view_mut::<3, 3>(3, 0)
-        .copy_from(&(crate::pose::skew(&m.translation.vector) * r));
-    a
-}
-
 /// `base1_from_base2 = base1_from_target * inverse(base2_from_target)` from two
 /// separate hand-eye fits, with first-order covariance propagation (the two fits
 /// are independent).
 pub fn chain_separate(robot1: &HandEyeEstimate, robot2: &HandEyeEstimate) -> (Iso3, Matrix6<f64>) {
     let base1_from_base2 = robot1.base_from_target * robot2.base_from_target.inverse();
     // δZ = δW1 - Ad(Z) δW2
-    let ad = adjoint(&base1_from_base2);
+    let ad = crate::pose::adjoint(&base1_from_base2);
     let cov = robot1.base_from_target_covariance
         + ad * robot2.base_from_target_covariance * ad.transpose();
     (base1_from_base2, (cov + cov.transpose()) * 0.5)

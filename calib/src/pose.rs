@@ -196,6 +196,19 @@ pub fn average_rotations(
     )))
 }
 
+/// The adjoint of a pose for left perturbations ordered `[ω, v]`: perturbing by
+/// `δ` on the left of `m * T` equals perturbing `T`'s image under `m` by
+/// `adjoint(m) * δ`, i.e. `m · E(δ) · m⁻¹ = E(adjoint(m) δ)` to first order.
+pub fn adjoint(m: &Iso3) -> nalgebra::Matrix6<f64> {
+    let r = m.rotation.to_rotation_matrix().into_inner();
+    let mut a = nalgebra::Matrix6::zeros();
+    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
+    a.fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&(skew(&m.translation.vector) * r));
+    a
+}
+
 /// The skew-symmetric matrix of `v`, so that `skew(v) * u = v × u`.
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
@@ -256,6 +269,18 @@ mod tests {
         let t = Vector3::new(delta[3], delta[4], delta[5]);
         let predicted = r.cross(&p.coords) + t;
         assert!(((moved - p) - predicted).norm() < 1e-11);
+    }
+
+    #[test]
+    fn adjoint_moves_a_perturbation_through_a_pose() {
+        let m = Iso3::new(Vector3::new(0.2, -0.4, 0.7), Vector3::new(-0.3, 0.9, 0.4));
+        let t = Iso3::new(Vector3::new(-0.1, 0.3, 0.2), Vector3::new(0.5, 0.1, -0.2));
+        let delta = Vector6::new(1e-6, -2e-6, 1.5e-6, 3e-6, -1e-6, 2e-6);
+        // m * E(delta) * t  ==  E(Ad(m) delta) * m * t
+        let lhs = m * perturb_left(&delta, &t);
+        let rhs = perturb_left(&(adjoint(&m) * delta), &(m * t));
+        let (dt, da) = pose_distance(&lhs, &rhs);
+        assert!(dt < 1e-11 && da < 1e-11, "{dt} {da}");
     }
 
     #[test]

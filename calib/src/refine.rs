@@ -111,17 +111,6 @@ pub(crate) struct CaptureModel {
     pub inlier: Vec<bool>,
 }
 
-/// The adjoint of a pose for left perturbations ordered `[ω, v]`.
-fn adjoint(m: &Iso3) -> Matrix6<f64> {
-    let r = m.rotation.to_rotation_matrix().into_inner();
-    let t = m.translation.vector;
-    let mut a = Matrix6::zeros();
-    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
-    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
-    a.fixed_view_mut::<3, 3>(3, 0).copy_from(&(skew(&t) * r));
-    a
-}
-
 /// The result of the joint problem, in the engine's terms.
 #[derive(Debug, Clone)]
 pub(crate) struct EngineSolution {
@@ -264,10 +253,10 @@ impl Engine {
         let camera_from_target = camera_from_ref * w;
         let cam = &cameras[cap.camera];
         // Sensitivities of the camera-frame left perturbation to each block.
-        let d_target = adjoint(&camera_from_ref);
+        let d_target = crate::pose::adjoint(&camera_from_ref);
         let d_link = -d_target;
-        let d_hand_eye = -adjoint(&x.inverse());
-        let d_robot = -adjoint(&base_from_camera.inverse());
+        let d_hand_eye = -crate::pose::adjoint(&x.inverse());
+        let d_robot = -crate::pose::adjoint(&base_from_camera.inverse());
         let n_in = cap.inlier.iter().filter(|v| **v).count();
         let mut r = DVector::zeros(2 * n_in);
         let (mut j, mut g) = if with_jacobian {
