@@ -8,10 +8,11 @@
 //! "ground truth" transform to compare the result against.
 
 use nalgebra::{Matrix3, Matrix3x6, Matrix6, Point3, SymmetricEigen, Vector3};
-use rand::{Rng, SeedableRng, rngs::StdRng};
+use rand::{SeedableRng, rngs::StdRng};
 
 use crate::pose::{geodesic_angle, skew};
 use crate::procrustes::fit_rigid;
+use crate::synth::gauss;
 use crate::{CalibError, Iso3};
 
 /// The metrics of `coordinator verify`.
@@ -42,12 +43,6 @@ pub fn point_covariance(cov: &Matrix6<f64>, p_in_base1: &Point3<f64>) -> Matrix3
     h.fixed_view_mut::<3, 3>(0, 3)
         .copy_from(&Matrix3::identity());
     h * cov * h.transpose()
-}
-
-fn gauss(rng: &mut StdRng) -> f64 {
-    let u1: f64 = rng.random::<f64>().max(1e-300);
-    let u2: f64 = rng.random();
-    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
 }
 
 /// Samples of |e| for e ~ N(0, c); deterministic for a seed.

@@ -111,6 +111,19 @@ pub(crate) struct CaptureModel {
     pub inlier: Vec<bool>,
 }
 
+impl CaptureModel {
+    /// `(base_from_camera, camera_from_ref)` for the current poses: the chain
+    /// every residual of this capture goes through.
+    fn chain(&self, poses: &[Iso3]) -> (Iso3, Iso3) {
+        let base_from_camera = self.capture.base_from_flange * poses[self.hand_eye];
+        let ref_from_camera = match self.ref_from_base {
+            Some(z) => poses[z] * base_from_camera,
+            None => base_from_camera,
+        };
+        (base_from_camera, ref_from_camera.inverse())
+    }
+}
+
 /// The result of the joint problem, in the engine's terms.
 #[derive(Debug, Clone)]
 pub(crate) struct EngineSolution {
@@ -244,12 +257,7 @@ impl Engine {
         let n = self.n_params();
         let x = poses[cap.hand_eye];
         let w = poses[cap.target];
-        let base_from_camera = cap.capture.base_from_flange * x;
-        let ref_from_camera = match cap.ref_from_base {
-            Some(z) => poses[z] * base_from_camera,
-            None => base_from_camera,
-        };
-        let camera_from_ref = ref_from_camera.inverse();
+        let (base_from_camera, camera_from_ref) = cap.chain(poses);
         let camera_from_target = camera_from_ref * w;
         let cam = &cameras[cap.camera];
         // Sensitivities of the camera-frame left perturbation to each block.
@@ -478,20 +486,11 @@ impl Engine {
 
     /// Per-corner residual norms (unweighted) for all corners, inliers or not.
     fn corner_errors(&self) -> Vec<Vec<f64>> {
-        let poses: Vec<Iso3> = (0..self.reference_poses.len())
-            .map(|b| self.pose(b))
-            .collect();
-        let cameras: Vec<CameraModel> = (0..self.reference_cameras.len())
-            .map(|c| self.camera(c))
-            .collect();
+        let (poses, cameras) = self.current();
         self.captures
             .iter()
             .map(|cap| {
-                let ref_from_camera = match cap.ref_from_base {
-                    Some(z) => poses[z] * cap.capture.base_from_flange * poses[cap.hand_eye],
-                    None => cap.capture.base_from_flange * poses[cap.hand_eye],
-                };
-                let camera_from_target = ref_from_camera.inverse() * poses[cap.target];
+                let camera_from_target = cap.chain(&poses).1 * poses[cap.target];
                 cap.capture
                     .target_points
                     .iter()

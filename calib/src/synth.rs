@@ -80,8 +80,9 @@ pub struct SynthRobot {
     pub board: Vec<Point3<f64>>,
 }
 
-fn gauss(rng: &mut StdRng) -> f64 {
-    // Box-Muller: enough for test noise, and keeps rand_distr out of the library.
+/// A standard normal sample (Box-Muller: enough for simulated noise and Monte
+/// Carlo, and keeps rand_distr out of the library).
+pub(crate) fn gauss(rng: &mut StdRng) -> f64 {
     let u1: f64 = rng.random::<f64>().max(1e-300);
     let u2: f64 = rng.random();
     (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
