@@ -4,13 +4,16 @@
 //! that an offline run on a dataset (`coordinator calibrate`, `agent handeye`) and
 //! the live services go through the same code. The stages:
 //!
-//! 1. [`observe_robot`]: per capture, detect the board (vision crate), fit its pose,
-//!    and pair it with the flange pose; failures become rejected captures with a
-//!    reason, never silent drops.
+//! 1. [`observe_robot`]: per capture, detect the target (vision crate: checkerboard,
+//!    ChArUco, ArUco grid or multimarker, [`TargetSpec`]), fit its pose, and pair
+//!    the corners seen (3-D target points + pixels) with the flange pose; failures
+//!    become rejected captures with a reason, never silent drops.
 //! 2. [`hand_eye`]: a closed form (Tsai, Park, Horaud, Andreff, Daniilidis, Shah, Li)
 //!    or the joint reprojection refinement seeded by Park.
 //! 3. [`base_to_base`]: both robots' refinements, then the joint problem over both
-//!    (`base1_from_base2` with covariance and a predicted touch error).
+//!    (`base1_from_base2` with covariance and a predicted touch error). The `board`
+//!    and `multimarker` methods are this same problem (the refinement projects 3-D
+//!    target points and does not assume a plane); each needs its kind of target.
 //! 4. [`verify`]: the touch-point check of a result.
 
 use std::path::Path;
@@ -30,7 +33,10 @@ use b2b_protocol::{
     CalibrationResult, CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResult, Pose,
     PredictedError, RESULT_FORMAT, RejectedCapture, Timings, VerifyReport,
 };
-use b2b_vision::{CheckerboardSpec, VisionError};
+use b2b_vision::{
+    ArucoGridSpec, BoardDetection, CharucoSpec, CheckerboardSpec, MarkerDictionary,
+    MultimarkerConfig, PoseEstimate, VisionError,
+};
 use nalgebra::{Matrix6, Point3};
 
 /// Everything that can stop the pipeline, with where it happened.
@@ -130,20 +136,139 @@ fn camera_of(ds: &Dataset, robot: &str) -> Result<CameraModel, PipelineError> {
     CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist).map_err(calib(robot))
 }
 
-fn checkerboard_spec(ds: &Dataset) -> Result<CheckerboardSpec, PipelineError> {
-    match &ds.manifest.target {
-        Target::Checkerboard {
-            inner_corners,
-            square_m,
-        } => Ok(CheckerboardSpec {
-            cols: inner_corners[0] as usize,
-            rows: inner_corners[1] as usize,
-            square_m: *square_m,
-        }),
-        other => Err(PipelineError::Unsupported(format!(
-            "target kind '{}' is not supported by the board method yet (checkerboard only)",
-            other.kind()
-        ))),
+/// The dataset's target, ready for detection.
+#[derive(Debug, Clone)]
+pub enum TargetSpec {
+    Checkerboard(CheckerboardSpec),
+    Charuco(CharucoSpec),
+    ArucoGrid(ArucoGridSpec),
+    /// An ARToolKit-style multimarker set (its file already read) and the dictionary
+    /// its barcode ids belong to.
+    Multimarker {
+        config: MultimarkerConfig,
+        dictionary: MarkerDictionary,
+    },
+}
+
+impl TargetSpec {
+    /// The target of a dataset; a multimarker file is read from the dataset folder.
+    pub fn from_dataset(ds: &Dataset) -> Result<Self, PipelineError> {
+        let manifest = ds.root.join("dataset.json");
+        let bad =
+            |e: VisionError| PipelineError::Invalid(format!("{}: target: {e}", manifest.display()));
+        let spec = match &ds.manifest.target {
+            Target::Checkerboard {
+                inner_corners,
+                square_m,
+            } => {
+                let spec = CheckerboardSpec {
+                    cols: inner_corners[0] as usize,
+                    rows: inner_corners[1] as usize,
+                    square_m: *square_m,
+                };
+                spec.validate().map_err(bad)?;
+                TargetSpec::Checkerboard(spec)
+            }
+            Target::Charuco {
+                squares,
+                square_m,
+                marker_m,
+                dictionary,
+            } => {
+                let spec = CharucoSpec {
+                    squares: [squares[0] as usize, squares[1] as usize],
+                    square_m: *square_m,
+                    marker_m: *marker_m,
+                    dictionary: dictionary.clone(),
+                };
+                spec.validate().map_err(bad)?;
+                TargetSpec::Charuco(spec)
+            }
+            Target::ArucoGrid {
+                markers,
+                marker_m,
+                separation_m,
+                dictionary,
+                first_id,
+            } => {
+                let spec = ArucoGridSpec {
+                    markers: [markers[0] as usize, markers[1] as usize],
+                    marker_m: *marker_m,
+                    separation_m: *separation_m,
+                    dictionary: dictionary.clone(),
+                    first_id: *first_id as usize,
+                };
+                spec.validate().map_err(bad)?;
+                TargetSpec::ArucoGrid(spec)
+            }
+            Target::Multimarker { config, dictionary } => {
+                let dictionary = MarkerDictionary::parse(dictionary).map_err(bad)?;
+                let path = if config.is_absolute() {
+                    config.clone()
+                } else {
+                    ds.root.join(config)
+                };
+                let config = MultimarkerConfig::load(&path)?;
+                config.check_dictionary(&dictionary)?;
+                TargetSpec::Multimarker { config, dictionary }
+            }
+        };
+        Ok(spec)
+    }
+
+    /// Every point of the target (corners by id), in the target frame.
+    pub fn all_points(&self) -> Vec<Point3<f64>> {
+        match self {
+            TargetSpec::Checkerboard(s) => {
+                (0..s.corner_count()).map(|k| s.target_point(k)).collect()
+            }
+            TargetSpec::Charuco(s) => (0..s.corner_count()).map(|k| s.target_point(k)).collect(),
+            TargetSpec::ArucoGrid(s) => (0..4 * s.marker_count())
+                .map(|k| s.target_point(k))
+                .collect(),
+            TargetSpec::Multimarker { config, .. } => {
+                config.markers.iter().flat_map(|m| m.corners()).collect()
+            }
+        }
+    }
+
+    /// The centroid of [`TargetSpec::all_points`].
+    pub fn centre(&self) -> Point3<f64> {
+        let pts = self.all_points();
+        Point3::from(
+            pts.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / pts.len().max(1) as f64,
+        )
+    }
+
+    /// Whether this is a board (checkerboard, ChArUco, ArUco grid) rather than a
+    /// multimarker set.
+    pub fn is_board(&self) -> bool {
+        !matches!(self, TargetSpec::Multimarker { .. })
+    }
+
+    /// Finds the target in an image and fits `camera_from_target`: the corners seen
+    /// (target points and pixels) and the pose with its residuals.
+    pub fn detect(
+        &self,
+        img: &b2b_vision::GrayImage,
+        camera: &CameraModel,
+    ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
+        let det = match self {
+            TargetSpec::Checkerboard(s) => b2b_vision::detect_checkerboard(img, s)?,
+            TargetSpec::Charuco(s) => b2b_vision::detect_charuco(img, s, camera)?,
+            TargetSpec::ArucoGrid(s) => b2b_vision::detect_aruco_grid(img, s)?,
+            TargetSpec::Multimarker { config, dictionary } => {
+                let m = b2b_vision::detect_multimarker(img, config, dictionary, camera)?;
+                let pose = PoseEstimate {
+                    camera_from_target: m.camera_from_target,
+                    residuals_px: m.residuals_px,
+                    rms_px: m.rms_px,
+                };
+                return Ok((m.detection, pose));
+            }
+        };
+        let pose = b2b_vision::board_pose(&det, camera)?;
+        Ok((det, pose))
     }
 }
 
@@ -152,28 +277,28 @@ fn checkerboard_spec(ds: &Dataset) -> Result<CheckerboardSpec, PipelineError> {
 pub struct RobotSetup {
     pub robot: String,
     pub camera: CameraModel,
-    pub spec: CheckerboardSpec,
+    pub target: TargetSpec,
     board_points: Vec<Point3<f64>>,
 }
 
 impl RobotSetup {
-    /// The camera and board of `robot` in a dataset.
+    /// The camera and target of `robot` in a dataset.
     pub fn from_dataset(ds: &Dataset, robot: &str) -> Result<Self, PipelineError> {
         let camera = camera_of(ds, robot)?;
-        let spec = checkerboard_spec(ds)?;
-        let board_points = b2b_calib::synth::board_points(spec.cols, spec.rows, spec.square_m);
+        let target = TargetSpec::from_dataset(ds)?;
+        let board_points = target.all_points();
         Ok(RobotSetup {
             robot: robot.to_owned(),
             camera,
-            spec,
+            target,
             board_points,
         })
     }
 }
 
-/// Detects the board in one capture and fits its pose, or says why not. Rows
-/// that give `T_camera_target` directly (pose-only rows) become the board's
-/// corners projected by that pose, so the refinement sees the same kind of data.
+/// Detects the target in one capture and fits its pose, or says why not. Rows
+/// that give `T_camera_target` directly (pose-only rows) become the target's
+/// points projected by that pose, so the refinement sees the same kind of data.
 pub fn observe_capture(
     ds: &Dataset,
     setup: &RobotSetup,
@@ -195,7 +320,7 @@ pub fn observe_capture(
             .collect();
         if pixels.len() != setup.board_points.len() {
             return Err(reject(
-                "board behind the camera in the given T_camera_target".into(),
+                "target behind the camera in the given T_camera_target".into(),
             ));
         }
         return Ok(Observation {
@@ -216,11 +341,9 @@ pub fn observe_capture(
             "row has neither an image nor T_camera_target".into(),
         ));
     };
-    let detection = b2b_vision::load_gray(&path)
-        .and_then(|img| b2b_vision::detect_checkerboard(&img, &setup.spec))
+    let (detection, pose) = b2b_vision::load_gray(&path)
+        .and_then(|img| setup.target.detect(&img, &setup.camera))
         .map_err(|e| reject(e.to_string()))?;
-    let pose =
-        b2b_vision::board_pose(&detection, &setup.camera).map_err(|e| reject(e.to_string()))?;
     Ok(Observation {
         row: cap.row,
         image,
@@ -385,6 +508,15 @@ impl FromStr for B2bMethod {
 }
 
 impl B2bMethod {
+    /// The name used on the command line and in results.
+    pub fn name(&self) -> &'static str {
+        match self {
+            B2bMethod::Board => "board",
+            B2bMethod::Multimarker => "multimarker",
+            B2bMethod::Rgbd => "rgbd",
+        }
+    }
+
     /// The default for a dataset's target kind (shared/interfaces.md).
     pub fn default_for(target: &Target) -> B2bMethod {
         match target {
@@ -401,14 +533,25 @@ pub fn base_to_base(
     options: &RefineOptions,
 ) -> Result<CalibrationResult, PipelineError> {
     let start = Instant::now();
-    match method {
-        B2bMethod::Board => {}
-        B2bMethod::Multimarker => {
-            return Err(PipelineError::Unsupported(
-                "method multimarker is not implemented yet".into(),
-            ));
+    let target = TargetSpec::from_dataset(ds)?;
+    match (method, target.is_board()) {
+        (B2bMethod::Board, true) | (B2bMethod::Multimarker, false) => {}
+        (B2bMethod::Board, false) => {
+            return Err(PipelineError::Invalid(format!(
+                "{}: method board needs a board target (checkerboard, charuco, aruco_grid); \
+                 this dataset's target is a multimarker set: use --method multimarker",
+                ds.root.join("dataset.json").display()
+            )));
         }
-        B2bMethod::Rgbd => {
+        (B2bMethod::Multimarker, true) => {
+            return Err(PipelineError::Invalid(format!(
+                "{}: method multimarker needs a multimarker target; this dataset's target \
+                 is '{}': use --method board",
+                ds.root.join("dataset.json").display(),
+                ds.manifest.target.kind()
+            )));
+        }
+        (B2bMethod::Rgbd, _) => {
             return Err(PipelineError::Unsupported(
                 "method rgbd is not implemented yet".into(),
             ));
@@ -424,30 +567,40 @@ pub fn base_to_base(
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let obs1 = observe_robot(ds, &ids[0])?;
     let obs2 = observe_robot(ds, &ids[1])?;
-    let board_centre = match &ds.manifest.target {
-        Target::Checkerboard {
-            inner_corners,
-            square_m,
-        } => Point3::new(
-            (inner_corners[0] as f64 - 1.0) * square_m / 2.0,
-            (inner_corners[1] as f64 - 1.0) * square_m / 2.0,
-            0.0,
-        ),
-        _ => Point3::origin(),
-    };
-    let mut result = base_to_base_from_observations([&obs1, &obs2], &board_centre, options)?;
+    let board_centre = target.centre();
+    let mut result =
+        base_to_base_from_observations_with([&obs1, &obs2], &board_centre, options, method)?;
     result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
     Ok(result)
 }
 
-/// Base-to-base from both robots' observations (offline or received live).
-/// `board_centre` (in the target frame) centres the workspace over which the
-/// touch error is predicted.
+/// Base-to-base from both robots' observations (offline or received live), by the
+/// board method. `board_centre` (in the target frame) centres the workspace over which
+/// the touch error is predicted.
 pub fn base_to_base_from_observations(
     robots: [&RobotObservations; 2],
     board_centre: &Point3<f64>,
     options: &RefineOptions,
 ) -> Result<CalibrationResult, PipelineError> {
+    base_to_base_from_observations_with(robots, board_centre, options, B2bMethod::Board)
+}
+
+/// [`base_to_base_from_observations`] recording `method` in the result. The board
+/// and multimarker methods are the same joint reprojection problem: the
+/// observations carry each capture's 3-D target points (board corners, or the
+/// corners of every marker seen, planar or not) and pixels, and the refinement
+/// projects them through `T_camera_target` without assuming a plane.
+pub fn base_to_base_from_observations_with(
+    robots: [&RobotObservations; 2],
+    board_centre: &Point3<f64>,
+    options: &RefineOptions,
+    method: B2bMethod,
+) -> Result<CalibrationResult, PipelineError> {
+    if method == B2bMethod::Rgbd {
+        return Err(PipelineError::Unsupported(
+            "method rgbd is not implemented yet".into(),
+        ));
+    }
     let [obs1, obs2] = robots;
     let solve_start = Instant::now();
     let he1 = hand_eye(obs1, HandEyeChoice::Refined, options)?;
@@ -473,7 +626,7 @@ pub fn base_to_base_from_observations(
     let detect_ms = obs1.detect_ms + obs2.detect_ms;
     Ok(CalibrationResult {
         format: RESULT_FORMAT.to_owned(),
-        method: "board".to_owned(),
+        method: method.name().to_owned(),
         base1_from_base2: Pose::from_isometry(&joint.base1_from_base2),
         covariance: covariance6(&joint.covariance),
         predicted_touch_error_m: PredictedError { mean, p95 },

@@ -75,6 +75,23 @@ impl Sequence {
     }
 }
 
+/// Options of `agent run`, whatever the source.
+#[derive(Debug, Clone)]
+pub struct AgentOptions {
+    pub robot: String,
+    pub zenoh: Option<PathBuf>,
+    pub state_dir: PathBuf,
+    /// Pause between captures (a real arm takes seconds per pose).
+    pub pace: Duration,
+    /// How long to wait for the coordinator's result after the last capture.
+    pub wait_result: Duration,
+    pub progress: bool,
+    /// Robot pose noise of the agent's own hand-eye estimates.
+    pub refine: RefineOptions,
+    /// Where captures are recorded (disabled: nowhere).
+    pub rerun: Arc<b2b_viz::Recorder>,
+}
+
 /// Options of `agent run --replay`.
 #[derive(Debug, Clone)]
 pub struct ReplayOptions {
@@ -87,10 +104,117 @@ pub struct ReplayOptions {
     /// How long to wait for the coordinator's result after the last capture.
     pub wait_result: Duration,
     pub progress: bool,
+    pub rerun: Arc<b2b_viz::Recorder>,
 }
 
-fn intrinsics(setup: &RobotSetup) -> Intrinsics {
-    let c = &setup.camera;
+/// What the agent knows so far, handed to the source before each capture (the
+/// automatic routine stops when the hand-eye is good enough).
+#[derive(Debug, Clone, Default)]
+pub struct Progress {
+    pub good: usize,
+    pub rejected: usize,
+    /// The newest hand-eye estimate and its covariance.
+    pub hand_eye: Option<HandEyeUpdate>,
+    /// Flange poses of the good captures so far.
+    pub good_poses: Vec<nalgebra::Isometry3<f64>>,
+    /// `base_from_target` of each good capture with the hand-eye of its time.
+    pub base_from_target: Vec<nalgebra::Isometry3<f64>>,
+}
+
+/// One capture as a source delivers it.
+#[derive(Debug, Clone)]
+pub struct SourceCapture {
+    /// Stable index (a replay's row order; a live source's capture count).
+    pub index: u64,
+    pub image: Option<String>,
+    pub base_from_flange: nalgebra::Isometry3<f64>,
+    pub controller_time_s: Option<f64>,
+    pub camera: b2b_calib::camera::CameraModel,
+    pub observed: Result<Observation, b2b_protocol::RejectedCapture>,
+    /// The grey image, when the source has it in memory (for the recording).
+    pub pixels: Option<Vec<u8>>,
+}
+
+/// Where captures come from: a dataset replay, the simulated cart, or a real arm.
+/// Everything after the source is the same code.
+pub trait CaptureSource {
+    /// One line for the status message.
+    fn describe(&self) -> String;
+    /// How many captures to expect, when known (for the progress bar).
+    fn expected(&self) -> Option<u64>;
+    /// The next capture, or `None` when the source is done.
+    fn next(
+        &mut self,
+        progress: &Progress,
+        stop: &AtomicBool,
+    ) -> anyhow::Result<Option<SourceCapture>>;
+    /// A closing line (timings, plan coverage), printed when the run ends.
+    fn summary(&self) -> Option<String> {
+        None
+    }
+}
+
+/// A `b2b-dataset/1` folder's captures of one robot.
+#[derive(Debug)]
+pub struct ReplaySource {
+    ds: b2b_dataset::Dataset,
+    setup: RobotSetup,
+    data: b2b_dataset::RobotData,
+    next: usize,
+    dataset: PathBuf,
+}
+
+impl ReplaySource {
+    /// Opens `dataset` for `robot`.
+    pub fn open(dataset: &Path, robot: &str) -> anyhow::Result<Self> {
+        let ds = b2b_pipeline::load_dataset(dataset)?;
+        let setup = RobotSetup::from_dataset(&ds, robot)?;
+        let data = ds
+            .robot(robot)
+            .with_context(|| format!("robot '{robot}' is not in {}", dataset.display()))?
+            .clone();
+        Ok(ReplaySource {
+            ds,
+            setup,
+            data,
+            next: 0,
+            dataset: dataset.to_owned(),
+        })
+    }
+}
+
+impl CaptureSource for ReplaySource {
+    fn describe(&self) -> String {
+        format!("replaying {}", self.dataset.display())
+    }
+
+    fn expected(&self) -> Option<u64> {
+        Some(self.data.captures.len() as u64)
+    }
+
+    fn next(
+        &mut self,
+        _progress: &Progress,
+        _stop: &AtomicBool,
+    ) -> anyhow::Result<Option<SourceCapture>> {
+        let Some(cap) = self.data.captures.get(self.next) else {
+            return Ok(None);
+        };
+        let index = self.next as u64;
+        self.next += 1;
+        Ok(Some(SourceCapture {
+            index,
+            image: cap.image.as_ref().map(|p| p.display().to_string()),
+            base_from_flange: cap.base_from_flange,
+            controller_time_s: None,
+            camera: self.setup.camera.clone(),
+            observed: observe_capture(&self.ds, &self.setup, cap),
+            pixels: None,
+        }))
+    }
+}
+
+fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
     Intrinsics {
         width: c.width,
         height: c.height,
@@ -124,18 +248,28 @@ pub fn run_replay(
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_robot_id(&opts.robot)?;
-    let ds = b2b_pipeline::load_dataset(&opts.dataset)?;
-    let setup = RobotSetup::from_dataset(&ds, &opts.robot)?;
-    let data = ds
-        .robot(&opts.robot)
-        .with_context(|| {
-            format!(
-                "robot '{}' is not in {}",
-                opts.robot,
-                opts.dataset.display()
-            )
-        })?
-        .clone();
+    let mut source = ReplaySource::open(&opts.dataset, &opts.robot)?;
+    let agent = AgentOptions {
+        robot: opts.robot.clone(),
+        zenoh: opts.zenoh.clone(),
+        state_dir: opts.state_dir.clone(),
+        pace: opts.pace,
+        wait_result: opts.wait_result,
+        progress: opts.progress,
+        refine: RefineOptions::default(),
+        rerun: Arc::clone(&opts.rerun),
+    };
+    run_agent(&agent, &mut source, stop)
+}
+
+/// Publishes one source's captures onto the bus (captures, hand-eye, status,
+/// history), then waits for the coordinator's result. Returns it when it came.
+pub fn run_agent(
+    opts: &AgentOptions,
+    source: &mut dyn CaptureSource,
+    stop: &AtomicBool,
+) -> anyhow::Result<Option<CalibrationResult>> {
+    b2b_protocol::messages::validate_robot_id(&opts.robot)?;
     let seq = Arc::new(Sequence::open(&opts.state_dir, &opts.robot)?);
     let session = bus::open(bus::config(opts.zenoh.as_deref(), bus::Role::Agent)?)?;
     let robot = opts.robot.clone();
@@ -171,7 +305,7 @@ pub fn run_replay(
         published: 0,
         rotation_diversity_deg: 0.0,
         enough_data: false,
-        message: format!("replaying {}", opts.dataset.display()),
+        message: source.describe(),
     }));
     let status_key = agent_key(&robot, "status");
     let publish_status = {
@@ -208,7 +342,10 @@ pub fn run_replay(
     };
 
     let bar = if opts.progress {
-        let bar = indicatif::ProgressBar::new(data.captures.len() as u64);
+        let bar = match source.expected() {
+            Some(n) => indicatif::ProgressBar::new(n),
+            None => indicatif::ProgressBar::no_length(),
+        };
         bar.set_style(
             indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}")
                 .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
@@ -221,46 +358,69 @@ pub fn run_replay(
 
     let capture_key = agent_key(&robot, "capture");
     let hand_eye_key = agent_key(&robot, "hand_eye");
-    let mut obs = RobotObservations {
-        robot: robot.clone(),
-        camera: setup.camera.clone(),
-        observations: vec![],
-        rejected: vec![],
-        detect_ms: 0.0,
-    };
+    let mut obs: Option<RobotObservations> = None;
     let mut flange_from_camera = None;
-    let options = RefineOptions::default();
+    let mut progress = Progress::default();
     let thresholds = MotionThresholds::default();
     let run = (|| -> anyhow::Result<()> {
-        for (index, cap) in data.captures.iter().enumerate() {
+        let mut published = 0u64;
+        loop {
             if stop.load(Ordering::SeqCst) {
-                anyhow::bail!("interrupted after {index} captures");
+                anyhow::bail!("interrupted after {published} captures");
             }
             let started = Instant::now();
-            let observed = observe_capture(&ds, &setup, cap);
+            let Some(cap) = source.next(&progress, stop)? else {
+                break;
+            };
+            let obs = obs.get_or_insert_with(|| RobotObservations {
+                robot: robot.clone(),
+                camera: cap.camera.clone(),
+                observations: vec![],
+                rejected: vec![],
+                detect_ms: 0.0,
+            });
             let mut msg = Capture {
-                index: index as u64,
-                controller_time_s: None,
-                image: cap.image.as_ref().map(|p| p.display().to_string()),
+                index: cap.index,
+                controller_time_s: cap.controller_time_s,
+                image: cap.image.clone(),
                 base_from_flange: Pose::from_isometry(&cap.base_from_flange),
-                camera: intrinsics(&setup),
+                camera: intrinsics(&cap.camera),
                 observation: None,
                 rejected: None,
                 base_from_target: None,
             };
-            match &observed {
+            match &cap.observed {
                 Ok(o) => {
                     msg.observation = Some(board_observation(o));
                     if let Some(x) = flange_from_camera {
-                        msg.base_from_target = Some(Pose::from_isometry(
-                            &(cap.base_from_flange * x * o.camera_from_target),
-                        ));
+                        let t = cap.base_from_flange * x * o.camera_from_target;
+                        msg.base_from_target = Some(Pose::from_isometry(&t));
+                        progress.base_from_target.push(t);
                     }
                     obs.observations.push(o.clone());
+                    progress.good_poses.push(cap.base_from_flange);
                 }
                 Err(r) => {
                     msg.rejected = Some(r.reason.clone());
                     obs.rejected.push(r.clone());
+                }
+            }
+            if opts.rerun.is_enabled() {
+                let base = b2b_viz::Base::One;
+                let logged = opts.rerun.log_capture(base, &msg).and_then(|()| match &cap.pixels {
+                    Some(p) => opts.rerun.log_image(
+                        base,
+                        b2b_viz::ImageView {
+                            pixels: p,
+                            width: cap.camera.width,
+                            height: cap.camera.height,
+                            format: b2b_viz::PixelFormat::Gray,
+                        },
+                    ),
+                    None => Ok(()),
+                });
+                if let Err(e) = logged {
+                    tracing::warn!("rerun: {e}");
                 }
             }
             let bytes = bus::encode(&Envelope::new(&robot, seq.take()?, msg));
@@ -272,6 +432,7 @@ pub fn run_replay(
                 .put(&capture_key, bytes)
                 .wait()
                 .map_err(|e| anyhow::anyhow!("publish {capture_key}: {e}"))?;
+            published += 1;
 
             // A hand-eye as soon as the motions allow one.
             let poses: Vec<_> = obs
@@ -281,7 +442,7 @@ pub fn run_replay(
                 .collect();
             let motion = check_motions(&poses, &thresholds);
             if motion.is_ok()
-                && let Ok(he) = hand_eye(&obs, HandEyeChoice::Refined, &options)
+                && let Ok(he) = hand_eye(obs, HandEyeChoice::Refined, &opts.refine)
             {
                 flange_from_camera = Some(he.estimate.flange_from_camera);
                 let update = HandEyeUpdate {
@@ -290,6 +451,14 @@ pub fn run_replay(
                     captures_used: obs.observations.len(),
                     reprojection_rms_px: he.result.reprojection_rms_px,
                 };
+                progress.hand_eye = Some(update.clone());
+                if let Err(e) = opts.rerun.log_hand_eye(
+                    b2b_viz::Base::One,
+                    &he.estimate.flange_from_camera,
+                    &intrinsics(&cap.camera),
+                ) {
+                    tracing::warn!("rerun: {e}");
+                }
                 session
                     .put(
                         &hand_eye_key,
@@ -298,6 +467,8 @@ pub fn run_replay(
                     .wait()
                     .map_err(|e| anyhow::anyhow!("publish {hand_eye_key}: {e}"))?;
             }
+            progress.good = obs.observations.len();
+            progress.rejected = obs.rejected.len();
             {
                 let mut s = status
                     .lock()
@@ -305,12 +476,12 @@ pub fn run_replay(
                 s.state = AgentState::Capturing;
                 s.good = obs.observations.len();
                 s.rejected = obs.rejected.len();
-                s.published = index as u64 + 1;
+                s.published = published;
                 s.rotation_diversity_deg = motion.as_ref().map_or(0.0, |m| m.max_axis_angle_deg);
                 s.enough_data = motion.is_ok() && obs.observations.len() >= 10;
-                s.message = match &observed {
-                    Ok(_) => format!("capture {index}: board found"),
-                    Err(r) => format!("capture {index} rejected: {}", r.reason),
+                s.message = match &cap.observed {
+                    Ok(_) => format!("capture {}: board found", cap.index),
+                    Err(r) => format!("capture {} rejected: {}", cap.index, r.reason),
                 };
                 bar.set_message(format!(
                     "good {} rejected {} diversity {:.0} deg {}",
@@ -323,6 +494,12 @@ pub fn run_replay(
                         "need more data"
                     }
                 ));
+                if let Err(r) = &cap.observed {
+                    bar.println(format!(
+                        "{robot}: capture {} rejected: {}",
+                        cap.index, r.reason
+                    ));
+                }
             }
             publish_status()?;
             bar.inc(1);
@@ -334,6 +511,19 @@ pub fn run_replay(
         Ok(())
     })();
     bar.finish();
+    if let Some(line) = source.summary() {
+        eprintln!("{robot}: {line}");
+    }
+    if let Some(o) = &obs {
+        for r in &o.rejected {
+            eprintln!(
+                "{robot}: rejected {} (row {}): {}",
+                r.image.as_deref().unwrap_or("-"),
+                r.row.map_or("-".into(), |n| n.to_string()),
+                r.reason
+            );
+        }
+    }
     {
         let mut s = status
             .lock()

@@ -4,8 +4,12 @@
 
 pub mod agent;
 pub mod bus;
+pub mod cart;
 pub mod coordinator;
+pub mod live;
 pub mod outputs;
+pub mod plan;
+pub mod setup;
 pub mod store;
 
 use std::path::Path;
@@ -72,6 +76,63 @@ impl RobotNoiseArgs {
             },
             ..Default::default()
         })
+    }
+}
+
+/// Where a command's rerun recording goes: `--rerun-save FILE.rrd` and/or
+/// `--rerun-connect ADDR` (a running viewer); neither: no recording.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct RerunArgs {
+    /// Write a rerun recording of this run to FILE.rrd.
+    #[arg(long, value_name = "FILE.rrd", conflicts_with = "rerun_connect")]
+    pub rerun_save: Option<std::path::PathBuf>,
+    /// Stream the recording to a running rerun viewer
+    /// (e.g. rerun+http://127.0.0.1:9876/proxy).
+    #[arg(long, value_name = "ADDR")]
+    pub rerun_connect: Option<String>,
+}
+
+impl RerunArgs {
+    /// The recorder these flags ask for.
+    pub fn recorder(&self, app_id: &str) -> anyhow::Result<b2b_viz::Recorder> {
+        Ok(match (&self.rerun_save, &self.rerun_connect) {
+            (Some(path), _) => b2b_viz::Recorder::save(app_id, path)
+                .with_context(|| format!("cannot write the recording {}", path.display()))?,
+            (None, Some(addr)) => b2b_viz::Recorder::connect(app_id, addr)
+                .with_context(|| format!("cannot stream to the rerun viewer at {addr}"))?,
+            (None, None) => b2b_viz::Recorder::disabled(),
+        })
+    }
+}
+
+/// Closes a recording; a viewer that went away is a warning, not a failed run.
+pub fn finish_recording(rec: b2b_viz::Recorder) {
+    let enabled = rec.is_enabled();
+    if let Err(e) = rec.finish()
+        && enabled
+    {
+        eprintln!("warning: the rerun recording did not finish cleanly: {e}");
+    }
+}
+
+/// Logs a result (both bases, hand-eyes, uncertainty) to a recording; robot 1 is
+/// the first id of `order` (default: sorted ids).
+pub fn log_result(
+    rec: &b2b_viz::Recorder,
+    result: &b2b_protocol::CalibrationResult,
+    order: Option<&[String]>,
+) {
+    if !rec.is_enabled() {
+        return;
+    }
+    let ids: Vec<String> = match order {
+        Some(o) if o.len() >= 2 => o.to_vec(),
+        _ => result.hand_eye.keys().cloned().collect(),
+    };
+    if ids.len() >= 2
+        && let Err(e) = rec.log_result(result, [ids[0].as_str(), ids[1].as_str()], 1.0)
+    {
+        tracing::warn!("rerun: {e}");
     }
 }
 

@@ -1,13 +1,16 @@
 //! `sim generate`: a scene file and a seed in, a `b2b-dataset/1` folder out.
 //!
 //! For each robot: draw its true kinematics from its error model; plan viewpoints by
-//! looking at the board from random points of a spherical cap above it (distance,
+//! looking at the target from random points of a spherical cap around its viewing axis
+//! (the printed side of a board, the open side of the three-face corner; distance,
 //! tilt, azimuth, roll and aim jitter drawn per viewpoint); solve the IK of the
 //! *nominal* model for the flange pose that puts the camera there (as the controller
 //! would), inside the joint limits; let the robot settle (encoder noise,
-//! repeatability); keep the viewpoint only if every inner corner is inside the image
-//! as the *true* camera sees it; render from the true camera pose; write the
-//! *reported* flange pose. Touch pairs: for each point of the shared workspace, both
+//! repeatability); keep the viewpoint only if every key point of the target (inner
+//! corners, marker corners) is inside the image as the *true* camera sees it and seen
+//! less than 80° off its face's normal; render from the true camera pose (once per
+//! lighting level with `lux_per_viewpoint`); write the *reported* flange pose. A
+//! multimarker target's ARToolKit file is written next to `dataset.json`. Touch pairs: for each point of the shared workspace, both
 //! robots bring a pointer's tip onto it (IK of the true model: the tip physically
 //! touches the point) and the reported tips carry the robots' errors plus tip noise.
 //!
@@ -19,8 +22,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use b2b_dataset::{
-    CameraIntrinsics, Capture, Dataset, GroundTruth, Manifest, RobotData, RobotManifest, Target,
-    TouchPair,
+    CameraIntrinsics, Capture, Dataset, GroundTruth, Manifest, RobotData, RobotManifest, TouchPair,
 };
 use nalgebra::{Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng as _, SeedableRng};
@@ -29,8 +31,9 @@ use crate::kinematics::{Arm, IkOptions};
 use crate::render::{RenderSettings, Renderer, SceneGeometry};
 use crate::robot_error::RobotInstance;
 use crate::scene::Scene;
-use crate::sensor::expose;
-use crate::texture::{Checkerboard, NoiseTexture, Texture, Uniform};
+use crate::sensor::{expose, expose_rgb};
+use crate::target::TargetModel;
+use crate::texture::{NoiseTexture, Texture, Uniform};
 use crate::{Iso3, Rng, SimError, image_io};
 
 /// A generator stream: `purpose`, `robot` and `index` select independent sequences.
@@ -74,24 +77,38 @@ pub struct Summary {
     pub attempts: Vec<usize>,
 }
 
-/// Builds the static scene geometry (board, table, boxes) in `base1`.
+/// Builds the static scene geometry (target, table, boxes) in `base1`; also returns the
+/// target model and `T_base1_target`.
 pub fn scene_geometry(
     scene: &Scene,
     file: &Path,
-) -> Result<(SceneGeometry, Checkerboard, Iso3), SimError> {
-    let b = &scene.board;
-    let board = Checkerboard::new(b.inner_corners, b.square_m, b.margin_m);
-    let base1_from_target = b
-        .base1_from_target
-        .to_iso(file, "board.base1_from_target")?;
+) -> Result<(SceneGeometry, TargetModel, Iso3), SimError> {
+    let (target, base1_from_target) = scene.target_model(file)?;
     let mut geo = SceneGeometry::default();
-    geo.add_checkerboard(base1_from_target, board);
+    for q in &target.quads {
+        geo.add_quad(
+            base1_from_target * q.target_from_quad,
+            q.min,
+            q.max,
+            q.texture.clone(),
+        );
+    }
     if let Some(z) = scene.table_z_m {
+        let texture: Arc<dyn Texture> = match scene.table_texture_seed {
+            Some(seed) => Arc::new(NoiseTexture {
+                seed,
+                scale_m: 0.06,
+                octaves: 4,
+                mean: 0.45,
+                contrast: 0.3,
+            }),
+            None => Arc::new(Uniform(0.3)),
+        };
         geo.add_quad(
             Iso3::translation(0.5, 0.0, z),
             [-1.5, -1.5],
             [1.5, 1.5],
-            Arc::new(Uniform(0.3)),
+            texture,
         );
     }
     for (i, bx) in scene.boxes.iter().enumerate() {
@@ -107,8 +124,12 @@ pub fn scene_geometry(
         });
         geo.add_box(pose, bx.size_m, textures);
     }
-    Ok((geo, board, base1_from_target))
+    Ok((geo, target, base1_from_target))
 }
+
+/// The largest angle between a target point's face normal and the direction to the
+/// camera for the point to count as visible (beyond it the print is too foreshortened).
+const MAX_INCIDENCE_DEG: f64 = 80.0;
 
 /// Generates the dataset described by `scene_file` into `out`.
 pub fn generate(scene_file: &Path, seed: u64, out: &Path) -> Result<Summary, SimError> {
@@ -126,7 +147,7 @@ pub fn generate_scene(
     options: &GenerateOptions,
 ) -> Result<Summary, SimError> {
     scene.validate(scene_file)?;
-    let (geometry, board, base1_from_target) = scene_geometry(scene, scene_file)?;
+    let (geometry, target, base1_from_target) = scene_geometry(scene, scene_file)?;
     let base1_from_base2 = scene
         .base1_from_base2
         .to_iso(scene_file, "base1_from_base2")?;
@@ -143,16 +164,23 @@ pub fn generate_scene(
         touches: 0,
         attempts: vec![],
     };
-    let corners = b2b_calib::synth::board_points(
-        board.inner_corners[0] as usize,
-        board.inner_corners[1] as usize,
-        board.square_m,
-    );
-    let centre_in_target = Point3::new(
-        (board.inner_corners[0] - 1) as f64 * board.square_m / 2.0,
-        (board.inner_corners[1] - 1) as f64 * board.square_m / 2.0,
-        0.0,
-    );
+    let centre_in_target = target.centre;
+    // The viewing cone's axis and two directions across it (for a board seen from its
+    // printed side, −z: x and y).
+    let axis = target.view_axis;
+    let helper = if axis.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let across1 = (helper - axis * axis.dot(&helper)).normalize();
+    let across2 = across1.cross(&axis);
+    let reps = if scene.lux_per_viewpoint {
+        scene.lux_levels.len()
+    } else {
+        1
+    };
+    let max_incidence_cos = MAX_INCIDENCE_DEG.to_radians().cos();
     for (r, spec) in scene.robots.iter().enumerate() {
         let camera = scene.camera(r)?;
         let renderer = Renderer::new(&camera)?;
@@ -176,12 +204,12 @@ pub fn generate_scene(
         let mut attempts = 0;
         let max_attempts = v.count * 400;
         let up_in_target = base_from_target.inverse().rotation * Vector3::z();
-        while captures.len() < v.count {
+        while captures.len() < v.count * reps {
             attempts += 1;
             if attempts > max_attempts {
                 return Err(SimError::PlanningFailed {
-                    what: format!("viewpoints of {} with the whole board in view", spec.id),
-                    found: captures.len(),
+                    what: format!("viewpoints of {} with the whole target in view", spec.id),
+                    found: captures.len() / reps,
                     wanted: v.count,
                     attempts: max_attempts,
                 });
@@ -195,12 +223,9 @@ pub fn generate_scene(
                 plan.random_range(-1.0..=1.0),
                 0.0,
             ) * v.look_jitter_m;
-            // The printed side faces -z of the target frame.
-            let dir = Vector3::new(
-                tilt.sin() * azimuth.cos(),
-                tilt.sin() * azimuth.sin(),
-                -tilt.cos(),
-            );
+            let dir = across1 * (tilt.sin() * azimuth.cos())
+                + across2 * (tilt.sin() * azimuth.sin())
+                + axis * tilt.cos();
             let eye = centre_in_target + dir * dist;
             let target_from_camera =
                 look_at(&eye, &(centre_in_target + jitter), &up_in_target, roll);
@@ -217,74 +242,95 @@ pub fn generate_scene(
             let base_from_camera = state.true_base_from_flange * flange_from_camera;
             let camera_from_target = base_from_camera.inverse() * base_from_target;
             let m = v.min_margin_px;
-            let all_in = corners.iter().all(|p| {
-                camera.project(&(camera_from_target * p)).is_some_and(|uv| {
-                    uv.x >= m
-                        && uv.y >= m
-                        && uv.x <= camera.width as f64 - 1.0 - m
-                        && uv.y <= camera.height as f64 - 1.0 - m
-                })
+            let eye_in_target = camera_from_target.inverse() * Point3::origin();
+            let all_in = target.key_points.iter().all(|(p, normal)| {
+                let to_eye = eye_in_target - p;
+                normal.dot(&to_eye) >= max_incidence_cos * to_eye.norm()
+                    && camera.project(&(camera_from_target * p)).is_some_and(|uv| {
+                        uv.x >= m
+                            && uv.y >= m
+                            && uv.x <= camera.width as f64 - 1.0 - m
+                            && uv.y <= camera.height as f64 - 1.0 - m
+                    })
             });
             if !all_in {
                 continue;
             }
-            let k = captures.len();
-            let mut noise = stream(seed, 3, r, k);
-            let rel_image = PathBuf::from(format!("images/{k:03}.png"));
-            let rel_depth = scene
-                .depth
-                .map(|_| PathBuf::from(format!("depth/{k:03}.png")));
-            let render = options
-                .render_only
-                .as_ref()
-                .is_none_or(|only| only.contains(&k));
-            let camera_from_world = (world_from_base[r] * base_from_camera).inverse();
-            let mut settings = RenderSettings::ideal();
-            settings.lighting = scene.lighting.clone();
-            if !scene.lux_levels.is_empty() {
-                settings.lighting.lux = scene.lux_levels[k % scene.lux_levels.len()];
-            }
-            settings.optics = scene.optics.clone();
-            let mut geo = geometry.clone();
-            if let Some(occ) = &scene.occluders
-                && noise.random_bool(occ.probability)
-            {
-                // A rectangle 10-25 cm in front of the camera, somewhere in the view.
-                let d = noise.random_range(0.1..0.25);
-                let size = noise.random_range(occ.size_m[0]..=occ.size_m[1]);
-                let length = noise.random_range(0.1..0.3);
-                let (x, y) = (
-                    noise.random_range(-0.3..0.3) * d,
-                    noise.random_range(-0.2..0.2) * d,
-                );
-                let angle = noise.random_range(0.0..std::f64::consts::PI);
-                let camera_from_occluder = Iso3::from_parts(
-                    Translation3::new(x, y, d),
-                    UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle),
-                );
-                geo.add_quad(
-                    camera_from_world.inverse() * camera_from_occluder,
-                    [-length / 2.0, -size / 2.0],
-                    [length / 2.0, size / 2.0],
-                    Arc::new(Uniform(occ.reflectance)),
-                );
-            }
-            if render {
-                let irradiance = renderer.render(&camera_from_world, &geo, &settings);
-                let image = expose(&irradiance, &scene.noise, &mut noise);
-                image_io::write_grey(&out.join(&spec.id).join(&rel_image), &image)?;
-                if let (Some(model), Some(rel)) = (&scene.depth, &rel_depth) {
-                    let d = model.measure(&irradiance, &mut noise);
-                    image_io::write_depth(&out.join(&spec.id).join(rel), &d)?;
+            for rep in 0..reps {
+                let k = captures.len();
+                let mut noise = stream(seed, 3, r, k);
+                let rel_image = PathBuf::from(format!("images/{k:03}.png"));
+                let rel_depth = scene
+                    .depth
+                    .map(|_| PathBuf::from(format!("depth/{k:03}.png")));
+                let render = options
+                    .render_only
+                    .as_ref()
+                    .is_none_or(|only| only.contains(&k));
+                let camera_from_world = (world_from_base[r] * base_from_camera).inverse();
+                let mut settings = RenderSettings::ideal();
+                settings.lighting = scene.lighting.clone();
+                if scene.lux_per_viewpoint {
+                    settings.lighting.lux = scene.lux_levels[rep];
+                } else if !scene.lux_levels.is_empty() {
+                    settings.lighting.lux = scene.lux_levels[k % scene.lux_levels.len()];
                 }
+                settings.optics = scene.optics.clone();
+                settings.colour = scene.colour;
+                let mut geo = geometry.clone();
+                if let Some(occ) = &scene.occluders
+                    && noise.random_bool(occ.probability)
+                {
+                    // A rectangle 10-25 cm in front of the camera, somewhere in the view or
+                    // on the line of sight to a point of the target.
+                    let d = noise.random_range(0.1..0.25);
+                    let size = noise.random_range(occ.size_m[0]..=occ.size_m[1]);
+                    let length = noise.random_range(0.1..0.3);
+                    let (x, y) = if occ.over_target {
+                        let i = noise.random_range(0..target.key_points.len());
+                        let p = camera_from_target * target.key_points[i].0;
+                        (p.x / p.z * d, p.y / p.z * d)
+                    } else {
+                        (
+                            noise.random_range(-0.3..0.3) * d,
+                            noise.random_range(-0.2..0.2) * d,
+                        )
+                    };
+                    let angle = noise.random_range(0.0..std::f64::consts::PI);
+                    let camera_from_occluder = Iso3::from_parts(
+                        Translation3::new(x, y, d),
+                        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle),
+                    );
+                    geo.add_quad(
+                        camera_from_world.inverse() * camera_from_occluder,
+                        [-length / 2.0, -size / 2.0],
+                        [length / 2.0, size / 2.0],
+                        Arc::new(Uniform(occ.reflectance)),
+                    );
+                }
+                if render {
+                    let irradiance = renderer.render(&camera_from_world, &geo, &settings);
+                    let file = out.join(&spec.id).join(&rel_image);
+                    if scene.colour {
+                        let image = expose_rgb(&irradiance, &scene.noise, &mut noise);
+                        image_io::write_rgb(&file, &image)?;
+                    } else {
+                        let image = expose(&irradiance, &scene.noise, &mut noise);
+                        image_io::write_grey(&file, &image)?;
+                    }
+                    if let (Some(model), Some(rel)) = (&scene.depth, &rel_depth) {
+                        let d = model.measure(&irradiance, &mut noise);
+                        image_io::write_depth(&out.join(&spec.id).join(rel), &d)?;
+                    }
+                }
+                captures.push(Capture {
+                    row: k + 1,
+                    image: Some(rel_image),
+                    depth: rel_depth,
+                    base_from_flange: state.reported_base_from_flange,
+                    camera_from_target: None,
+                });
             }
-            captures.push(Capture {
-                row: k + 1,
-                image: Some(rel_image),
-                depth: rel_depth,
-                base_from_flange: state.reported_base_from_flange,
-                camera_from_target: None,
-            });
         }
         summary.captures.push(captures.len());
         summary.attempts.push(attempts);
@@ -321,14 +367,7 @@ pub fn generate_scene(
         }
         None => None,
     };
-    let mut manifest = Manifest::new(
-        scene.name.clone(),
-        Target::Checkerboard {
-            inner_corners: board.inner_corners,
-            square_m: board.square_m,
-        },
-        robots_manifest,
-    );
+    let mut manifest = Manifest::new(scene.name.clone(), target.manifest.clone(), robots_manifest);
     let scene_name = scene_file
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -343,6 +382,13 @@ pub fn generate_scene(
         robots: robots_data,
         touch_points,
     };
+    for (rel, text) in &target.files {
+        let file = out.join(rel);
+        if let Some(parent) = file.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| SimError::io(parent, e))?;
+        }
+        std::fs::write(&file, text).map_err(|e| SimError::io(&file, e))?;
+    }
     dataset.write(out)?;
     b2b_dataset::write_ground_truth(out, &truth)?;
     Ok(summary)

@@ -8,13 +8,13 @@ use std::io::BufWriter;
 use std::path::Path;
 
 use crate::SimError;
-use crate::sensor::{DepthImage, GreyImage};
+use crate::sensor::{DepthImage, GreyImage, RgbImage};
 
 fn write(
     path: &Path,
     width: usize,
     height: usize,
-    depth: png::BitDepth,
+    (colour, depth): (png::ColorType, png::BitDepth),
     bytes: &[u8],
 ) -> Result<(), SimError> {
     let png_err = |e: png::EncodingError| SimError::Png {
@@ -30,7 +30,7 @@ fn write(
         u32::try_from(height).map_err(|_| SimError::invalid("image", "too high"))?,
     );
     let mut enc = png::Encoder::new(BufWriter::new(file), w, h);
-    enc.set_color(png::ColorType::Grayscale);
+    enc.set_color(colour);
     enc.set_depth(depth);
     enc.set_compression(png::Compression::Default);
     enc.set_filter(png::FilterType::Paeth);
@@ -42,13 +42,21 @@ fn write(
 
 /// Writes an 8-bit grey PNG.
 pub fn write_grey(path: &Path, img: &GreyImage) -> Result<(), SimError> {
-    write(path, img.width, img.height, png::BitDepth::Eight, &img.data)
+    let format = (png::ColorType::Grayscale, png::BitDepth::Eight);
+    write(path, img.width, img.height, format, &img.data)
+}
+
+/// Writes an 8-bit RGB PNG.
+pub fn write_rgb(path: &Path, img: &RgbImage) -> Result<(), SimError> {
+    let format = (png::ColorType::Rgb, png::BitDepth::Eight);
+    write(path, img.width, img.height, format, &img.data)
 }
 
 /// Writes a 16-bit grey PNG (big-endian, as PNG stores it) of depth units.
 pub fn write_depth(path: &Path, img: &DepthImage) -> Result<(), SimError> {
     let bytes: Vec<u8> = img.data.iter().flat_map(|v| v.to_be_bytes()).collect();
-    write(path, img.width, img.height, png::BitDepth::Sixteen, &bytes)
+    let format = (png::ColorType::Grayscale, png::BitDepth::Sixteen);
+    write(path, img.width, img.height, format, &bytes)
 }
 
 /// Reads an 8-bit grey PNG (for tests and tools).

@@ -226,6 +226,8 @@ pub struct RenderSettings {
     pub dn_per_lux: f64,
     /// Where rays hit nothing, DN.
     pub background_dn: f64,
+    /// Also render the three colour channels ([`Irradiance::rgb`]).
+    pub colour: bool,
 }
 
 impl RenderSettings {
@@ -239,6 +241,7 @@ impl RenderSettings {
             optics: Optics::ideal(),
             dn_per_lux: DN_PER_LUX,
             background_dn: 20.0,
+            colour: false,
         }
     }
 }
@@ -255,6 +258,10 @@ pub struct Irradiance {
     pub dn: Vec<f32>,
     /// True z-depth of each pixel centre's ray, m; 0 where the ray hits nothing.
     pub depth_m: Vec<f32>,
+    /// Red, green, blue DN per pixel when rendered in colour, else empty. Prints are
+    /// tinted with luminance `0.299 r + 0.587 g + 0.114 b = 1`, so `dn` is the
+    /// luminance of these channels (up to the clipping of saturated tints).
+    pub rgb: Vec<[f32; 3]>,
 }
 
 /// OpenCV's distortion of normalised coordinates and its Jacobian (row-major 2x2):
@@ -312,11 +319,14 @@ struct Hit {
     quad: u32,
     t: f64,
     tex: TexSample,
+    /// Where on the quad, in its own coordinates.
+    at: [f64; 2],
 }
 
 const NO_HIT: Hit = Hit {
     quad: MISS,
     t: 0.0,
+    at: [0.0; 2],
     tex: TexSample {
         reflectance: 0.0,
         region: 0,
@@ -350,6 +360,7 @@ fn cast(quads: &[CamQuad<'_>], ray: [f64; 2]) -> Hit {
             quad: k as u32,
             t,
             tex: quads[k].texture.sample(lx, ly),
+            at: [lx, ly],
         },
         None => NO_HIT,
     }
@@ -377,6 +388,19 @@ struct Shading {
 }
 
 impl Shading {
+    /// [`Shading::shade`] per colour channel: the print's tint (luminance 1) times the
+    /// grey value, with no channel reflecting more than all the light.
+    fn shade_rgb(&self, quads: &[CamQuad<'_>], hit: &Hit, ray: [f64; 2]) -> [f64; 3] {
+        let grey = self.shade(quads, hit, ray);
+        if hit.quad == MISS {
+            return [grey; 3];
+        }
+        let tint = quads[hit.quad as usize].texture.tint(hit.at[0], hit.at[1]);
+        let r = hit.tex.reflectance as f64;
+        let cap = if r > 0.0 { 1.0 / r } else { 1.0 };
+        tint.map(|t| grey * (t as f64).min(cap))
+    }
+
     fn shade(&self, quads: &[CamQuad<'_>], hit: &Hit, ray: [f64; 2]) -> f64 {
         if hit.quad == MISS {
             return self.background;
@@ -474,6 +498,11 @@ impl Renderer {
         let varying_pattern = sample_pattern(settings.varying_samples);
         let mut dn = vec![0f32; w * h];
         let mut depth = vec![0f32; w * h];
+        let mut rgb = if settings.colour {
+            vec![[0f32; 3]; w * h]
+        } else {
+            vec![]
+        };
         let cast_row = |v: usize| -> Vec<Hit> {
             self.corners[v * (w + 1)..(v + 1) * (w + 1)]
                 .iter()
@@ -495,6 +524,9 @@ impl Renderer {
                 let quad_corners = [c0[u], c0[u + 1], c1[u], c1[u + 1]];
                 if quad_corners.iter().any(|c| c[0].is_nan()) {
                     dn[v * w + u] = shading.background as f32;
+                    if settings.colour {
+                        rgb[v * w + u] = [shading.background as f32; 3];
+                    }
                     continue;
                 }
                 let lerp = |s: f64, t: f64| {
@@ -542,6 +574,20 @@ impl Renderer {
                     shading.shade(&quads, &centre, centre_ray)
                 };
                 dn[v * w + u] = value as f32;
+                if settings.colour {
+                    let c = if let Some(pattern) = pattern {
+                        let mut sum = [0.0; 3];
+                        for &(s, t) in pattern.iter() {
+                            let ray = lerp(s, t);
+                            let c = shading.shade_rgb(&quads, &cast(&quads, ray), ray);
+                            (0..3).for_each(|k| sum[k] += c[k]);
+                        }
+                        sum.map(|v| v / pattern.len() as f64)
+                    } else {
+                        shading.shade_rgb(&quads, &centre, centre_ray)
+                    };
+                    rgb[v * w + u] = c.map(|v| v as f32);
+                }
             }
             upper = lower;
         }
@@ -550,6 +596,7 @@ impl Renderer {
             height: h,
             dn,
             depth_m: depth,
+            rgb,
         };
         self.apply_optics(&mut out, &settings.optics);
         out
@@ -631,25 +678,16 @@ impl Renderer {
             .collect();
         if sigma.iter().any(|&s| s > 0.01) {
             let mut kernels = KernelCache::default();
-            let mut tmp = vec![0f32; w * h];
-            for v in 0..h {
-                for u in 0..w {
-                    let k = kernels.get(sigma[v * w + u]);
-                    tmp[v * w + u] = convolve(k, |i| {
-                        let x = (u as isize + i).clamp(0, w as isize - 1) as usize;
-                        img.dn[v * w + x]
-                    });
+            if !img.rgb.is_empty() {
+                for k in 0..3 {
+                    let mut channel: Vec<f32> = img.rgb.iter().map(|c| c[k]).collect();
+                    blur(&mut channel, &sigma, w, h, &mut kernels);
+                    for (c, v) in img.rgb.iter_mut().zip(channel) {
+                        c[k] = v;
+                    }
                 }
             }
-            for v in 0..h {
-                for u in 0..w {
-                    let k = kernels.get(sigma[v * w + u]);
-                    img.dn[v * w + u] = convolve(k, |i| {
-                        let y = (v as isize + i).clamp(0, h as isize - 1) as usize;
-                        tmp[y * w + u]
-                    });
-                }
-            }
+            blur(&mut img.dn, &sigma, w, h, &mut kernels);
         }
         if optics.vignetting > 0.0 {
             let s = optics.vignetting.clamp(0.0, 1.0);
@@ -664,7 +702,11 @@ impl Renderer {
                         continue;
                     }
                     let cos2 = 1.0 / (1.0 + x * x + y * y);
-                    img.dn[v * w + u] *= (1.0 - s * (1.0 - cos2 * cos2)) as f32;
+                    let f = (1.0 - s * (1.0 - cos2 * cos2)) as f32;
+                    img.dn[v * w + u] *= f;
+                    if let Some(c) = img.rgb.get_mut(v * w + u) {
+                        c.iter_mut().for_each(|x| *x *= f);
+                    }
                 }
             }
         }
@@ -691,6 +733,29 @@ fn sample_pattern(n: usize) -> Vec<(f64, f64)> {
             )
         })
         .collect()
+}
+
+/// The separable depth-dependent Gaussian of [`Renderer::apply_optics`] on one channel.
+fn blur(img: &mut [f32], sigma: &[f32], w: usize, h: usize, kernels: &mut KernelCache) {
+    let mut tmp = vec![0f32; w * h];
+    for v in 0..h {
+        for u in 0..w {
+            let k = kernels.get(sigma[v * w + u]);
+            tmp[v * w + u] = convolve(k, |i| {
+                let x = (u as isize + i).clamp(0, w as isize - 1) as usize;
+                img[v * w + x]
+            });
+        }
+    }
+    for v in 0..h {
+        for u in 0..w {
+            let k = kernels.get(sigma[v * w + u]);
+            img[v * w + u] = convolve(k, |i| {
+                let y = (v as isize + i).clamp(0, h as isize - 1) as usize;
+                tmp[y * w + u]
+            });
+        }
+    }
 }
 
 fn convolve(kernel: &[f32], at: impl Fn(isize) -> f32) -> f32 {

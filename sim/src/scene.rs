@@ -5,7 +5,9 @@
 //! (fixed-axis roll, pitch, yaw: `R = Rz(y)·Ry(p)·Rx(r)`) or
 //! `{"t": [...], "q": [qx, qy, qz, qw]}`. Unknown fields are errors (a misspelt
 //! optional field would otherwise silently fall back to its default), and every error
-//! names the file and the field. See `datasets/*/scene.json` for complete examples.
+//! names the file and the field. See `datasets/*/scene.json` for complete examples:
+//! the target is either `board` (a checkerboard) or `target` (ChArUco, ArUco grid, or a
+//! multimarker set: a planar grid, a single marker, or the three-face corner).
 
 use std::path::{Path, PathBuf};
 
@@ -85,6 +87,77 @@ pub struct BoardSpec {
 
 fn default_margin() -> f64 {
     0.015
+}
+
+fn default_marker_margin() -> f64 {
+    0.01
+}
+
+/// A marker target on the table (instead of `board`). The JSON tag is `kind`, as in
+/// `dataset.json`'s `target`; frames are those of shared/dataset-format.md (ChArUco and
+/// grid: OpenCV's, z into the board) and notes/marker-convention.md (multimarker).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TargetSpec {
+    /// A ChArUco board (OpenCV 4.6 layout; an odd number of rows).
+    Charuco {
+        squares: [u32; 2],
+        square_m: f64,
+        marker_m: f64,
+        dictionary: String,
+        /// White border around the squares, m.
+        #[serde(default = "default_marker_margin")]
+        margin_m: f64,
+        base1_from_target: PoseSpec,
+    },
+    /// An ArUco grid board (OpenCV 4.6 `GridBoard`).
+    ArucoGrid {
+        markers: [u32; 2],
+        marker_m: f64,
+        separation_m: f64,
+        dictionary: String,
+        #[serde(default)]
+        first_id: u32,
+        #[serde(default = "default_marker_margin")]
+        margin_m: f64,
+        base1_from_target: PoseSpec,
+    },
+    /// A multimarker set; the generator writes its ARToolKit file into the dataset.
+    Multimarker {
+        dictionary: String,
+        layout: MultimarkerLayout,
+        /// White border around the markers of a planar layout, m.
+        #[serde(default = "default_marker_margin")]
+        margin_m: f64,
+        /// `T_base1_set`.
+        base1_from_target: PoseSpec,
+    },
+}
+
+/// The markers of a multimarker set. The JSON tag is `shape`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "shape", rename_all = "snake_case", deny_unknown_fields)]
+pub enum MultimarkerLayout {
+    /// Planar `markers = [columns, rows]` at `pitch_m`, centred on the set origin
+    /// (ARToolKit5's multi-barcode-4x3.dat is `[4, 3]`, 0.04 m, pitch 0.07 m); `[1, 1]`
+    /// is a single marker whose frame is the set frame.
+    Grid {
+        markers: [u32; 2],
+        marker_m: f64,
+        pitch_m: f64,
+        #[serde(default)]
+        first_id: u32,
+    },
+    /// The three-face corner: `per_side x per_side` markers on each of the floor and
+    /// two walls, each face `face_m` square.
+    Corner {
+        per_side: u32,
+        marker_m: f64,
+        pitch_m: f64,
+        face_m: f64,
+        #[serde(default)]
+        first_id: u32,
+    },
 }
 
 /// Camera intrinsics, OpenCV model.
@@ -192,6 +265,10 @@ pub struct BoxSpec {
 pub struct OccluderSpec {
     /// Probability that a capture has an occluder.
     pub probability: f64,
+    /// Put the occluder on the line of sight to a random point of the target (so it
+    /// always hides part of it) instead of anywhere in the view.
+    #[serde(default)]
+    pub over_target: bool,
     /// Side length range, m.
     #[serde(default = "default_occluder_size")]
     pub size_m: [f64; 2],
@@ -214,7 +291,12 @@ pub struct Scene {
     pub name: String,
     #[serde(default)]
     pub license: String,
-    pub board: BoardSpec,
+    /// A checkerboard target; give either `board` or `target`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub board: Option<BoardSpec>,
+    /// A marker target.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target: Option<TargetSpec>,
     /// `T_base1_base2`.
     pub base1_from_base2: PoseSpec,
     /// Exactly two robots (robot 1 defines `base1`).
@@ -227,6 +309,11 @@ pub struct Scene {
     /// `lighting.lux` (the seed's 145 / 243 / 352 lx experiment).
     #[serde(default)]
     pub lux_levels: Vec<f64>,
+    /// With `lux_levels`: capture every viewpoint once per level (captures
+    /// `L·v .. L·v + L - 1` of viewpoint `v` at levels `0..L`, the robot standing
+    /// still), so that each level sees the same poses.
+    #[serde(default)]
+    pub lux_per_viewpoint: bool,
     #[serde(default = "Optics::realsense")]
     pub optics: Optics,
     #[serde(default)]
@@ -234,10 +321,17 @@ pub struct Scene {
     /// Table top height in `base1` (a uniform grey plane), m.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub table_z_m: Option<f64>,
+    /// Print a random texture ([`crate::texture::NoiseTexture`]) of this seed on the
+    /// table instead of uniform grey (feature-rich scenes for the RGB-D method).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table_texture_seed: Option<u64>,
     #[serde(default)]
     pub boxes: Vec<BoxSpec>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub occluders: Option<OccluderSpec>,
+    /// Render colour images (RGB PNG) instead of grey.
+    #[serde(default)]
+    pub colour: bool,
     /// When given, a RealSense-like depth image is written with every capture.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth: Option<DepthModel>,
@@ -284,27 +378,19 @@ impl Scene {
         if self.robots[0].id == self.robots[1].id {
             return Err(bad("robots[1].id", "robot ids must differ".into()));
         }
-        let b = &self.board;
-        if b.inner_corners.iter().any(|&n| n < 2) {
-            return Err(bad(
-                "board.inner_corners",
-                "need at least 2x2 inner corners".into(),
-            ));
+        match (&self.board, &self.target) {
+            (Some(b), None) => Self::validate_board(b, file)?,
+            (None, Some(t)) => Self::validate_target(t, file)?,
+            _ => {
+                return Err(bad(
+                    "board",
+                    "give exactly one of `board` (a checkerboard) and `target`".into(),
+                ));
+            }
         }
-        if !(b.square_m > 0.0 && b.square_m < 1.0) {
-            return Err(bad(
-                "board.square_m",
-                format!("{} is not a square size in metres", b.square_m),
-            ));
+        if self.lux_per_viewpoint && self.lux_levels.is_empty() {
+            return Err(bad("lux_per_viewpoint", "needs `lux_levels`".into()));
         }
-        if !(b.margin_m >= 0.0 && b.margin_m < 1.0) {
-            return Err(bad(
-                "board.margin_m",
-                format!("{} is not a margin in metres", b.margin_m),
-            ));
-        }
-        b.base1_from_target
-            .to_iso(file, "board.base1_from_target")?;
         self.base1_from_base2.to_iso(file, "base1_from_base2")?;
         for (i, r) in self.robots.iter().enumerate() {
             let f = |name: &str| format!("robots[{i}].{name}");
@@ -411,6 +497,170 @@ impl Scene {
             d.validate().map_err(|e| bad("depth", e.to_string()))?;
         }
         Ok(())
+    }
+
+    fn validate_board(b: &BoardSpec, file: &Path) -> Result<(), SimError> {
+        let bad = |field: &str, reason: String| SimError::SceneValue {
+            file: PathBuf::from(file),
+            field: field.to_owned(),
+            reason,
+        };
+        if b.inner_corners.iter().any(|&n| n < 2) {
+            return Err(bad(
+                "board.inner_corners",
+                "need at least 2x2 inner corners".into(),
+            ));
+        }
+        if !(b.square_m > 0.0 && b.square_m < 1.0) {
+            return Err(bad(
+                "board.square_m",
+                format!("{} is not a square size in metres", b.square_m),
+            ));
+        }
+        if !(b.margin_m >= 0.0 && b.margin_m < 1.0) {
+            return Err(bad(
+                "board.margin_m",
+                format!("{} is not a margin in metres", b.margin_m),
+            ));
+        }
+        b.base1_from_target
+            .to_iso(file, "board.base1_from_target")?;
+        Ok(())
+    }
+
+    fn validate_target(t: &TargetSpec, file: &Path) -> Result<(), SimError> {
+        let bad = |field: &str, reason: String| SimError::SceneValue {
+            file: PathBuf::from(file),
+            field: field.to_owned(),
+            reason,
+        };
+        let metres = |field: &str, v: f64| {
+            if v > 0.0 && v < 2.0 {
+                Ok(())
+            } else {
+                Err(bad(field, format!("{v} is not a length in metres")))
+            }
+        };
+        let (pose, margin) = match t {
+            TargetSpec::Charuco {
+                square_m,
+                marker_m,
+                base1_from_target,
+                margin_m,
+                ..
+            } => {
+                metres("target.square_m", *square_m)?;
+                metres("target.marker_m", *marker_m)?;
+                (base1_from_target, margin_m)
+            }
+            TargetSpec::ArucoGrid {
+                marker_m,
+                separation_m,
+                base1_from_target,
+                margin_m,
+                ..
+            } => {
+                metres("target.marker_m", *marker_m)?;
+                if !(*separation_m >= 0.0 && *separation_m < 1.0) {
+                    return Err(bad("target.separation_m", format!("{separation_m}")));
+                }
+                (base1_from_target, margin_m)
+            }
+            TargetSpec::Multimarker {
+                layout,
+                base1_from_target,
+                margin_m,
+                ..
+            } => {
+                match layout {
+                    MultimarkerLayout::Grid {
+                        markers,
+                        marker_m,
+                        pitch_m,
+                        ..
+                    } => {
+                        metres("target.layout.marker_m", *marker_m)?;
+                        if markers.iter().any(|&n| n == 0 || n > 100) {
+                            return Err(bad("target.layout.markers", format!("{markers:?}")));
+                        }
+                        if *pitch_m < *marker_m && markers.iter().any(|&n| n > 1) {
+                            return Err(bad(
+                                "target.layout.pitch_m",
+                                format!("{pitch_m} is less than the marker side {marker_m}"),
+                            ));
+                        }
+                    }
+                    MultimarkerLayout::Corner {
+                        per_side,
+                        marker_m,
+                        pitch_m,
+                        face_m,
+                        ..
+                    } => {
+                        metres("target.layout.marker_m", *marker_m)?;
+                        metres("target.layout.face_m", *face_m)?;
+                        let span = (*per_side as f64 - 1.0) * pitch_m + marker_m;
+                        if *per_side == 0
+                            || *per_side > 20
+                            || (*per_side > 1 && pitch_m < marker_m)
+                            || span > *face_m
+                        {
+                            return Err(bad(
+                                "target.layout",
+                                format!(
+                                    "{per_side} markers of {marker_m} m at {pitch_m} m do not fit a {face_m} m face"
+                                ),
+                            ));
+                        }
+                    }
+                }
+                (base1_from_target, margin_m)
+            }
+        };
+        if !(*margin >= 0.0 && *margin < 1.0) {
+            return Err(bad("target.margin_m", format!("{margin}")));
+        }
+        pose.to_iso(file, "target.base1_from_target")?;
+        // Layout errors (dictionary, ids, overlaps) name the field too.
+        crate::target::TargetModel::build(t).map_err(|e| bad("target", e.to_string()))?;
+        Ok(())
+    }
+
+    /// The target model and `T_base1_target`.
+    pub fn target_model(
+        &self,
+        file: &Path,
+    ) -> Result<(crate::target::TargetModel, Iso3), SimError> {
+        use crate::target::TargetModel;
+        match (&self.board, &self.target) {
+            (Some(b), None) => Ok((
+                TargetModel::checkerboard(b),
+                b.base1_from_target
+                    .to_iso(file, "board.base1_from_target")?,
+            )),
+            (None, Some(t)) => {
+                let pose = match t {
+                    TargetSpec::Charuco {
+                        base1_from_target, ..
+                    }
+                    | TargetSpec::ArucoGrid {
+                        base1_from_target, ..
+                    }
+                    | TargetSpec::Multimarker {
+                        base1_from_target, ..
+                    } => base1_from_target,
+                };
+                Ok((
+                    TargetModel::build(t)?,
+                    pose.to_iso(file, "target.base1_from_target")?,
+                ))
+            }
+            _ => Err(SimError::SceneValue {
+                file: file.to_owned(),
+                field: "board".into(),
+                reason: "give exactly one of `board` (a checkerboard) and `target`".into(),
+            }),
+        }
     }
 
     /// Robot `i`'s camera model.

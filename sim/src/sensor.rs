@@ -30,6 +30,14 @@ pub struct GreyImage {
     pub data: Vec<u8>,
 }
 
+/// An 8-bit colour image, row-major, red-green-blue interleaved.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RgbImage {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<u8>,
+}
+
 /// A 16-bit depth image, row-major, in sensor units; 0 = no data.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DepthImage {
@@ -109,6 +117,28 @@ pub fn expose(irradiance: &Irradiance, noise: &SensorNoise, rng: &mut Rng) -> Gr
         width: irradiance.width,
         height: irradiance.height,
         data,
+    }
+}
+
+/// Exposes a colour sensor: [`expose`] on each channel of [`Irradiance::rgb`] (the
+/// grey irradiance on all three when the frame was rendered without colour).
+pub fn expose_rgb(irradiance: &Irradiance, noise: &SensorNoise, rng: &mut Rng) -> RgbImage {
+    let channels: Vec<f32> = if irradiance.rgb.is_empty() {
+        irradiance.dn.iter().flat_map(|&v| [v; 3]).collect()
+    } else {
+        irradiance.rgb.iter().flatten().copied().collect()
+    };
+    let flat = Irradiance {
+        width: channels.len(),
+        height: 1,
+        dn: channels,
+        depth_m: vec![],
+        rgb: vec![],
+    };
+    RgbImage {
+        width: irradiance.width,
+        height: irradiance.height,
+        data: expose(&flat, noise, rng).data,
     }
 }
 
@@ -259,6 +289,7 @@ mod tests {
             height: h,
             dn: vec![dn; w * h],
             depth_m: vec![z; w * h],
+            rgb: vec![],
         }
     }
 

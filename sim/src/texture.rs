@@ -35,6 +35,22 @@ pub struct TexSample {
 pub trait Texture: Debug + Send + Sync {
     /// The reflectance at `(x, y)` metres, and its region (see the module docs).
     fn sample(&self, x: f64, y: f64) -> TexSample;
+
+    /// The colour of the print at `(x, y)`: per-channel (red, green, blue) factors on
+    /// the reflectance with luminance `0.299 r + 0.587 g + 0.114 b = 1`, so that the
+    /// grey rendering is the same. Constant over each region of [`Texture::sample`]
+    /// (or the texture answers [`VARYING`]). Paper, toner and grey: `[1, 1, 1]`.
+    fn tint(&self, _x: f64, _y: f64) -> [f32; 3] {
+        [1.0; 3]
+    }
+}
+
+/// A tint of hue `hue` (radians) and saturation `saturation` (0..1) with luminance 1.
+pub fn tint_from_hue(hue: f32, saturation: f32) -> [f32; 3] {
+    use std::f32::consts::TAU;
+    let c = [0.0, TAU / 3.0, 2.0 * TAU / 3.0].map(|o| 1.0 + saturation * (hue - o).cos());
+    let luminance = 0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2];
+    c.map(|v| v / luminance)
 }
 
 /// The same reflectance everywhere.
@@ -243,6 +259,22 @@ impl Texture for NoiseTexture {
             reflectance: (self.mean + 2.0 * self.contrast * v).clamp(0.02, 0.95),
             region: VARYING,
         }
+    }
+
+    /// Printed colour: a random hue per cell of the coarsest lattice, and a second,
+    /// finer one on the blots, so colour edges add to the grey structure.
+    fn tint(&self, x: f64, y: f64) -> [f32; 3] {
+        let s = self.scale_m;
+        let (i, j) = ((x / s).floor() as i64, (y / s).floor() as i64);
+        let mut hue = hash(self.seed ^ 0xC010, i, j, 7) * std::f32::consts::TAU;
+        let (bi, bj) = (
+            (x / (0.5 * s)).floor() as i64,
+            (y / (0.5 * s)).floor() as i64,
+        );
+        if hash(self.seed ^ 0xB10B, bi, bj, 99) < 0.33 {
+            hue += std::f32::consts::PI;
+        }
+        tint_from_hue(hue, 0.45)
     }
 }
 

@@ -5,14 +5,23 @@
 //! grid-orthogonality refinement) against OpenCV's `detectMarkers` +
 //! `interpolateCornersCharuco` alone, on a 7x5-square board drawn by OpenCV and warped
 //! into a 1280x720 frame.
+//! Markers: an ArUco grid, a single AprilTag 36h11, the 4x3 multimarker sheet and the
+//! three-face multimarker corner, each printed by `printable`/`render_face` and
+//! rendered by `synth::render_planes` into a 1280x720 frame, with pose where the
+//! detector gives one (multimarker).
 //! `cargo bench -p b2b-vision`; `cargo test --benches -p b2b-vision` runs each once.
 
 use std::hint::black_box;
 
 use b2b_calib::camera::CameraModel;
-use b2b_vision::synth::{BoardScene, render_checkerboard};
+use b2b_vision::multimarker::{MultimarkerConfig, detect_multimarker};
+use b2b_vision::printable::{PrintableTarget, pages};
+use b2b_vision::synth::{
+    BoardScene, PlaneScene, TexturedPlane, render_checkerboard, render_planes,
+};
 use b2b_vision::{
-    CharucoSpec, CheckerboardSpec, detect_charuco, detect_checkerboard, render_charuco,
+    ArucoGridSpec, CharucoSpec, CheckerboardSpec, MarkerDictionary, detect_aruco_grid,
+    detect_charuco, detect_checkerboard, detect_marker, render_charuco,
 };
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -183,5 +192,132 @@ fn bench_charuco(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench, bench_charuco);
+/// A page of `printable` as a textured plane in a board frame (x right, y down, z
+/// into the page), its top-left corner at `(-margin, -margin)`.
+fn page_plane(target: &PrintableTarget, margin: f64) -> TexturedPlane {
+    let page = &pages(target, margin).unwrap()[0];
+    let dpi = 600.0;
+    TexturedPlane {
+        texture: page.png(dpi).unwrap(),
+        target_from_plane: Isometry3::from_parts(
+            Translation3::identity(),
+            UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+        ),
+        top_left_m: nalgebra::Point2::new(-margin, margin),
+        texel_m: 0.0254 / dpi,
+    }
+}
+
+fn planes_frame(planes: Vec<TexturedPlane>, pose: Isometry3<f64>) -> b2b_vision::GrayImage {
+    render_planes(&PlaneScene {
+        camera: camera(),
+        camera_from_target: pose,
+        planes,
+        background: 120.0,
+        noise_sigma: 2.0,
+        seed: 1,
+        supersample: 4,
+    })
+    .unwrap()
+}
+
+fn look_at(eye: Vector3<f64>, at: Vector3<f64>, up: Vector3<f64>) -> Isometry3<f64> {
+    let z = (at - eye).normalize();
+    let y = -(up - z * up.dot(&z)).normalize();
+    let x = y.cross(&z);
+    let r = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[x, y, z]));
+    Isometry3::from_parts(
+        Translation3::from(eye),
+        UnitQuaternion::from_rotation_matrix(&r),
+    )
+    .inverse()
+}
+
+fn bench_markers(c: &mut Criterion) {
+    let cam = camera();
+    let tilted = |centre: Vector3<f64>, d: f64| {
+        let r = UnitQuaternion::from_euler_angles(0.3, -0.2, 0.15);
+        Isometry3::from_parts(
+            Translation3::from(Vector3::new(0.02, 0.0, d) - r * centre),
+            r,
+        )
+    };
+    let grid = ArucoGridSpec {
+        markers: [4, 3],
+        marker_m: 0.05,
+        separation_m: 0.01,
+        dictionary: "DICT_6X6_250".into(),
+        first_id: 0,
+    };
+    let grid_img = planes_frame(
+        vec![page_plane(&PrintableTarget::ArucoGrid(grid.clone()), 0.01)],
+        tilted(Vector3::new(0.115, 0.085, 0.0), 0.7),
+    );
+    assert_eq!(
+        detect_aruco_grid(&grid_img, &grid).unwrap().pixels.len(),
+        48
+    );
+    let tag = PrintableTarget::Marker {
+        dictionary: "DICT_APRILTAG_36h11".into(),
+        id: 7,
+        marker_m: 0.1,
+    };
+    let tag_img = planes_frame(
+        vec![page_plane(&tag, 0.03)],
+        tilted(Vector3::new(0.05, 0.05, 0.0), 0.6),
+    );
+    detect_marker(&tag_img, "DICT_APRILTAG_36h11", 7, 0.1).unwrap();
+    let mm_grid = MultimarkerConfig::grid_4x3();
+    let dict4 = MarkerDictionary::parse("DICT_4X4_50").unwrap();
+    let mm_grid_img = planes_frame(
+        TexturedPlane::multimarker_faces(&mm_grid, &dict4, 6000.0, 0.02).unwrap(),
+        look_at(
+            Vector3::new(0.2, -0.15, 0.55),
+            Vector3::zeros(),
+            Vector3::y(),
+        ),
+    );
+    assert_eq!(
+        detect_multimarker(&mm_grid_img, &mm_grid, &dict4, &cam)
+            .unwrap()
+            .markers
+            .len(),
+        12
+    );
+    let corner = MultimarkerConfig::three_face_corner();
+    let corner_img = planes_frame(
+        TexturedPlane::multimarker_faces(&corner, &dict4, 6000.0, 0.01).unwrap(),
+        look_at(
+            Vector3::new(0.4, 0.4, 0.4),
+            Vector3::new(0.06, 0.06, 0.06),
+            Vector3::z(),
+        ),
+    );
+    assert_eq!(
+        detect_multimarker(&corner_img, &corner, &dict4, &cam)
+            .unwrap()
+            .markers
+            .len(),
+        12
+    );
+
+    let mut group = c.benchmark_group("detect_1280x720_markers");
+    group.sample_size(20);
+    group.bench_function("b2b_vision::detect_aruco_grid 4x3 DICT_6X6_250", |b| {
+        b.iter(|| detect_aruco_grid(black_box(&grid_img), &grid).unwrap())
+    });
+    group.bench_function("b2b_vision::detect_marker AprilTag 36h11", |b| {
+        b.iter(|| detect_marker(black_box(&tag_img), "DICT_APRILTAG_36h11", 7, 0.1).unwrap())
+    });
+    group.bench_function("b2b_vision::detect_multimarker 4x3 sheet (+pose)", |b| {
+        b.iter(|| detect_multimarker(black_box(&mm_grid_img), &mm_grid, &dict4, &cam).unwrap())
+    });
+    group.bench_function(
+        "b2b_vision::detect_multimarker three-face corner (+pose)",
+        |b| b.iter(|| detect_multimarker(black_box(&corner_img), &corner, &dict4, &cam).unwrap()),
+    );
+    group.finish();
+}
+
+criterion_group!(benches, bench, bench_charuco, bench_markers);
 criterion_main!(benches);

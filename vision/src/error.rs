@@ -82,6 +82,22 @@ pub enum VisionError {
         dictionary: &'static str,
         count: usize,
     },
+    /// A multimarker file that cannot be used; `line` is 1-based (0: the whole file).
+    #[error("{source_name}:{line}: {reason}")]
+    MultimarkerFile {
+        source_name: String,
+        line: usize,
+        reason: String,
+    },
+    /// Two poses explain the corners about equally well.
+    #[error("ambiguous pose: {0}")]
+    AmbiguousPose(String),
+    /// Camera calibration could not run or gave an unusable result.
+    #[error("intrinsics: {0}")]
+    Intrinsics(String),
+    /// A printable target could not be made or written.
+    #[error("printable target: {0}")]
+    Printable(String),
     /// OpenCV threw; `context` says which call.
     #[error("OpenCV {context}: {source}")]
     OpenCv {

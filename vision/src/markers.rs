@@ -165,7 +165,7 @@ impl MarkerDictionary {
         DICTIONARIES[self.index].2
     }
 
-    fn opencv(&self) -> Result<Ptr<aruco::Dictionary>, VisionError> {
+    pub(crate) fn opencv(&self) -> Result<Ptr<aruco::Dictionary>, VisionError> {
         aruco::get_predefined_dictionary(DICTIONARIES[self.index].1).cv("getPredefinedDictionary")
     }
 
@@ -267,7 +267,10 @@ impl CharucoSpec {
         )
     }
 
-    fn board(&self, dict: &MarkerDictionary) -> Result<Ptr<aruco::CharucoBoard>, VisionError> {
+    pub(crate) fn board(
+        &self,
+        dict: &MarkerDictionary,
+    ) -> Result<Ptr<aruco::CharucoBoard>, VisionError> {
         let (c, r) = side("ChArUco squares", self.squares, 2)?;
         let board = aruco::CharucoBoard::create(
             c,
@@ -605,11 +608,11 @@ pub fn detect_marker(
 }
 
 /// A marker's four corners and whether [`refine_marker_quad`] refined them.
-type RefinedQuad = (Vec<Point2<f64>>, bool);
+pub(crate) type RefinedQuad = (Vec<Point2<f64>>, bool);
 
 /// Converts OpenCV's marker quads to points and refines each with
 /// [`refine_marker_quad`]; the flag says whether that refinement succeeded.
-fn refined_quads(
+pub(crate) fn refined_quads(
     img: &GrayImage,
     dict: &MarkerDictionary,
     corners: &Vector<Vector<Point2f>>,
@@ -730,7 +733,7 @@ fn not_found(img: &GrayImage, dict: &MarkerDictionary, what: &str) -> VisionErro
 
 /// `detectMarkers` with OpenCV's default parameters, and `CORNER_REFINE_SUBPIX` when
 /// `subpix`. Returns the marker corners (clockwise from the top-left) and ids.
-fn raw_markers(
+pub(crate) fn raw_markers(
     img: &GrayImage,
     dict: &MarkerDictionary,
     subpix: bool,

@@ -217,3 +217,167 @@ impl Rng {
         (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
     }
 }
+
+/// A flat textured surface for [`render_planes`]: an image lying in the plane z = 0 of
+/// its own frame, printed side towards +z (seen only from the +z side), x right along
+/// the image columns and y up against the rows. Texel `(col, row)` covers
+/// x ∈ [x0 + col·texel, x0 + (col+1)·texel), y ∈ (y0 - (row+1)·texel, y0 - row·texel]
+/// with `(x0, y0) = top_left_m`; outside the image the plane is transparent.
+#[derive(Debug)]
+pub struct TexturedPlane {
+    pub texture: GrayImage,
+    /// `T_target_plane`.
+    pub target_from_plane: Isometry3<f64>,
+    pub top_left_m: Point2<f64>,
+    pub texel_m: f64,
+}
+
+impl TexturedPlane {
+    /// The faces of a multimarker set drawn by [`crate::multimarker::render_face`]
+    /// with `margin_m` of white around the markers, at `px_per_m`.
+    pub fn multimarker_faces(
+        config: &crate::multimarker::MultimarkerConfig,
+        dictionary: &crate::markers::MarkerDictionary,
+        px_per_m: f64,
+        margin_m: f64,
+    ) -> Result<Vec<TexturedPlane>, VisionError> {
+        config
+            .faces()
+            .iter()
+            .map(|face| {
+                let (texture, top_left_m) =
+                    crate::multimarker::render_face(face, dictionary, px_per_m, margin_m)?;
+                Ok(TexturedPlane {
+                    texture,
+                    target_from_plane: face.set_from_face,
+                    top_left_m,
+                    texel_m: 1.0 / px_per_m,
+                })
+            })
+            .collect()
+    }
+}
+
+/// A scene of textured planes for [`render_planes`].
+#[derive(Debug)]
+pub struct PlaneScene {
+    pub camera: CameraModel,
+    /// `T_camera_target`.
+    pub camera_from_target: Isometry3<f64>,
+    pub planes: Vec<TexturedPlane>,
+    /// Grey level where no plane is seen.
+    pub background: f64,
+    /// Standard deviation of additive Gaussian noise, grey levels (0: none).
+    pub noise_sigma: f64,
+    pub seed: u64,
+    /// Samples per pixel side where a pixel is not uniform.
+    pub supersample: usize,
+}
+
+/// Renders textured planes by ray casting (the nearest plane hit wins, so faces
+/// hide each other), box-filtered like [`render_checkerboard`]: a pixel whose four
+/// corners and centre see the same texel value is that value, any other pixel is the
+/// mean of `supersample²` samples. With texel edges at known plane positions the image
+/// of an edge or corner is exactly its projection (up to the sampling).
+pub fn render_planes(scene: &PlaneScene) -> Result<GrayImage, VisionError> {
+    let cam = &scene.camera;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    if w == 0 || h == 0 {
+        return Err(VisionError::InvalidImage(
+            "camera has a zero-sized image".into(),
+        ));
+    }
+    for p in &scene.planes {
+        if !(p.texel_m.is_finite() && p.texel_m > 0.0) {
+            return Err(VisionError::InvalidSpec(format!(
+                "texel size {} m must be positive and finite",
+                p.texel_m
+            )));
+        }
+    }
+    // Each plane in the camera frame: origin, axes, normal.
+    let planes: Vec<(Isometry3<f64>, &TexturedPlane)> = scene
+        .planes
+        .iter()
+        .map(|p| {
+            (
+                (scene.camera_from_target * p.target_from_plane).inverse(),
+                p,
+            )
+        })
+        .collect();
+    let undistorted = cam.dist.iter().all(|&d| d == 0.0);
+    let shade = |u: f64, v: f64| -> f64 {
+        let n = if undistorted {
+            nalgebra::Vector2::new((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy)
+        } else {
+            cam.unproject(&Point2::new(u, v))
+        };
+        let ray = Vector3::new(n.x, n.y, 1.0);
+        let mut best = (f64::INFINITY, scene.background);
+        for (plane_from_camera, p) in &planes {
+            let o = plane_from_camera.translation.vector;
+            // Seen only from the printed (+z) side.
+            if o.z <= 0.0 {
+                continue;
+            }
+            let d = plane_from_camera.rotation * ray;
+            if d.z >= -1e-12 {
+                continue;
+            }
+            let s = -o.z / d.z;
+            if s <= 0.0 || s >= best.0 {
+                continue;
+            }
+            let (x, y) = (o.x + s * d.x, o.y + s * d.y);
+            let col = ((x - p.top_left_m.x) / p.texel_m).floor();
+            let row = ((p.top_left_m.y - y) / p.texel_m).floor();
+            let (tw, th) = (p.texture.width() as f64, p.texture.height() as f64);
+            if col >= 0.0 && row >= 0.0 && col < tw && row < th {
+                let value = p.texture.pixels()[row as usize * tw as usize + col as usize];
+                best = (s, f64::from(value));
+            }
+        }
+        best.1
+    };
+    // Shade at pixel corners, shared between neighbours.
+    let mut corners = vec![0.0; (w + 1) * (h + 1)];
+    for v in 0..=h {
+        for u in 0..=w {
+            corners[v * (w + 1) + u] = shade(u as f64 - 0.5, v as f64 - 0.5);
+        }
+    }
+    let n = scene.supersample.max(1);
+    let mut rng = Rng(scene.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
+    let mut pixels = vec![0u8; w * h];
+    for v in 0..h {
+        for u in 0..w {
+            let (uf, vf) = (u as f64, v as f64);
+            let c = [
+                corners[v * (w + 1) + u],
+                corners[v * (w + 1) + u + 1],
+                corners[(v + 1) * (w + 1) + u],
+                corners[(v + 1) * (w + 1) + u + 1],
+            ];
+            let centre = shade(uf, vf);
+            let mut value = if c.iter().all(|&x| x == centre) {
+                centre
+            } else {
+                let mut sum = 0.0;
+                for sv in 0..n {
+                    for su in 0..n {
+                        let du = (su as f64 + 0.5) / n as f64 - 0.5;
+                        let dv = (sv as f64 + 0.5) / n as f64 - 0.5;
+                        sum += shade(uf + du, vf + dv);
+                    }
+                }
+                sum / (n * n) as f64
+            };
+            if scene.noise_sigma > 0.0 {
+                value += scene.noise_sigma * rng.gaussian();
+            }
+            pixels[v * w + u] = value.round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    GrayImage::from_raw(w as u32, h as u32, &pixels)
+}

@@ -8,7 +8,10 @@ use anyhow::Context;
 use b2b_pipeline::{B2bMethod, base_to_base, load_dataset, verify};
 use b2b_protocol::CalibrationResult;
 use b2b_services::outputs::{print_result, write_result};
-use b2b_services::{RobotNoiseArgs, init_logging, read_json, run_main, stop_flag, write_json};
+use b2b_services::{
+    RerunArgs, RobotNoiseArgs, finish_recording, init_logging, log_result, read_json, run_main,
+    stop_flag, write_json,
+};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -46,6 +49,8 @@ enum Command {
         out: PathBuf,
         #[command(flatten)]
         noise: RobotNoiseArgs,
+        #[command(flatten)]
+        rerun: RerunArgs,
     },
     /// base1_from_base2 from a two-robot b2b-dataset/1 folder (never reads
     /// ground_truth.json or reference.json).
@@ -60,6 +65,8 @@ enum Command {
         out: PathBuf,
         #[command(flatten)]
         noise: RobotNoiseArgs,
+        #[command(flatten)]
+        rerun: RerunArgs,
     },
     /// Checks a result against pointer-tip touch pairs (touch_points.csv format).
     Verify {
@@ -73,6 +80,30 @@ enum Command {
         /// Each pointer tip's noise (1 sigma, mm), added to the predicted bounds.
         #[arg(long, default_value_t = 0.0)]
         tip_sigma_mm: f64,
+        #[command(flatten)]
+        rerun: RerunArgs,
+    },
+    /// An HTML report of a result (and its verification): plots of residuals,
+    /// error distributions, touch errors against the predicted bound, view
+    /// coverage, rejected captures, and the numbers.
+    Report {
+        #[arg(long)]
+        result: PathBuf,
+        /// verify --json output.
+        #[arg(long)]
+        verify: Option<PathBuf>,
+        /// HANDEYE.json files (agent handeye) adding per-capture residuals.
+        #[arg(long = "hand-eye")]
+        hand_eye: Vec<PathBuf>,
+        /// Touch points (touch_points.csv) adding per-touch errors.
+        #[arg(long = "touch-points")]
+        touch_points: Option<PathBuf>,
+        /// Each pointer tip's noise (1 sigma, mm), for the per-touch bounds.
+        #[arg(long, default_value_t = 0.0)]
+        tip_sigma_mm: f64,
+        /// Output folder (index.html and the plots).
+        #[arg(long)]
+        out: PathBuf,
     },
 }
 
@@ -87,7 +118,9 @@ fn main() -> std::process::ExitCode {
             robots,
             out,
             noise,
+            rerun,
         } => {
+            let recorder = rerun.recorder("b2b-coordinator")?;
             anyhow::ensure!(
                 method == "board",
                 "method '{method}' is not available live yet (board only)"
@@ -97,11 +130,13 @@ fn main() -> std::process::ExitCode {
                 zenoh,
                 state_dir,
                 robots: 2,
-                order: robots,
+                order: robots.clone(),
                 refine: noise.options()?,
             };
             let (result, counters) = b2b_services::coordinator::run(&opts, &stop)?;
             write_result(&out, &result).context("writing the result")?;
+            log_result(&recorder, &result, robots.as_deref());
+            finish_recording(recorder);
             print_result(&result);
             println!(
                 "messages: {} accepted, {} duplicates dropped, {} rejected",
@@ -115,7 +150,9 @@ fn main() -> std::process::ExitCode {
             method,
             out,
             noise,
+            rerun,
         } => {
+            let recorder = rerun.recorder("b2b-coordinator")?;
             let ds = load_dataset(&dataset)?;
             let method = match method {
                 Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
@@ -123,6 +160,9 @@ fn main() -> std::process::ExitCode {
             };
             let result = base_to_base(&ds, method, &noise.options()?)?;
             write_result(&out, &result).context("writing the result")?;
+            let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
+            log_result(&recorder, &result, Some(&order));
+            finish_recording(recorder);
             print_result(&result);
             println!("wrote {}", out.display());
             Ok(())
@@ -132,7 +172,9 @@ fn main() -> std::process::ExitCode {
             touch_points,
             json,
             tip_sigma_mm,
+            rerun,
         } => {
+            let recorder = rerun.recorder("b2b-verify")?;
             anyhow::ensure!(
                 tip_sigma_mm.is_finite() && tip_sigma_mm >= 0.0,
                 "--tip-sigma-mm must be a number >= 0"
@@ -169,6 +211,58 @@ fn main() -> std::process::ExitCode {
                 write_json(&path, &report)?;
                 println!("wrote {}", path.display());
             }
+            if recorder.is_enabled() {
+                log_result(&recorder, &r, None);
+                let b = r.base1_from_base2.to_isometry("T_base1_base2")?;
+                let rows: Vec<b2b_viz::Touch> = touches
+                    .iter()
+                    .zip(&m.bound95_m)
+                    .map(|(t, bound)| b2b_viz::Touch {
+                        row: t.row,
+                        tip1_in_base1: t.tip1_in_base1,
+                        tip2_in_base2: t.tip2_in_base2,
+                        bound95_m: *bound,
+                    })
+                    .collect();
+                if let Err(e) = recorder.log_touches(&b, &rows) {
+                    eprintln!("warning: rerun: {e}");
+                }
+            }
+            finish_recording(recorder);
+            Ok(())
+        }
+        Command::Report {
+            result,
+            verify: verify_file,
+            hand_eye,
+            touch_points,
+            tip_sigma_mm,
+            out,
+        } => {
+            let mut inputs =
+                b2b_report::ReportInputs::from_files(&result, verify_file.as_deref())?;
+            for f in &hand_eye {
+                inputs.add_hand_eye_file(f)?;
+            }
+            if let Some(tp) = touch_points {
+                anyhow::ensure!(
+                    tip_sigma_mm.is_finite() && tip_sigma_mm >= 0.0,
+                    "--tip-sigma-mm must be a number >= 0"
+                );
+                let touches = b2b_dataset::read_touch_points(&tp)?;
+                let (_, m) = verify(&inputs.result, &touches, tip_sigma_mm * 1e-3)?;
+                inputs.touches = touches
+                    .iter()
+                    .zip(m.errors_m.iter().zip(&m.bound95_m))
+                    .map(|(t, (e, b))| b2b_report::TouchDetail {
+                        row: t.row,
+                        error_m: *e,
+                        bound95_m: *b,
+                    })
+                    .collect();
+            }
+            let files = b2b_report::write_report(&inputs, &out)?;
+            println!("wrote {}", files.index.display());
             Ok(())
         }
     })

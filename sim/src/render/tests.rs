@@ -393,3 +393,52 @@ fn vignetting_darkens_the_corners_by_the_cos4_law() {
         corner / centre
     );
 }
+
+#[test]
+fn colour_channels_have_the_grey_image_as_luminance() {
+    let cam = camera(&[]);
+    let mut scene = SceneGeometry::default();
+    let noise = NoiseTexture {
+        seed: 5,
+        scale_m: 0.05,
+        octaves: 4,
+        mean: 0.4,
+        contrast: 0.2,
+    };
+    // A coloured print on the left, the (grey) checkerboard on the right.
+    scene.add_quad(
+        Iso3::translation(0.0, 0.0, 0.6),
+        [-1.0, -1.0],
+        [0.0, 1.0],
+        Arc::new(noise),
+    );
+    scene.add_checkerboard(Iso3::translation(0.02, -0.1, 0.6), board());
+    let r = Renderer::new(&cam).unwrap();
+    let mut settings = RenderSettings::ideal();
+    settings.optics = Optics::realsense();
+    settings.colour = true;
+    let img = r.render(&Iso3::identity(), &scene, &settings);
+    assert_eq!(img.rgb.len(), img.dn.len());
+    let (mut coloured, mut grey) = (0, 0);
+    for (c, &y) in img.rgb.iter().zip(&img.dn) {
+        let lum = 0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2];
+        // Tints with luminance 1: the grey image is the colour image's luminance
+        // (no tint is clipped at these reflectances).
+        assert!((lum - y).abs() < 1e-3 * y.max(1.0), "{c:?} vs {y}");
+        let spread =
+            c.iter().cloned().fold(f32::MIN, f32::max) - c.iter().cloned().fold(f32::MAX, f32::min);
+        if spread > 0.1 * y {
+            coloured += 1;
+        } else if spread < 1e-4 * y.max(1.0) {
+            grey += 1;
+        }
+    }
+    // The print is coloured, the board and the background are grey.
+    assert!(coloured > img.dn.len() / 4, "{coloured}");
+    assert!(grey > img.dn.len() / 4, "{grey}");
+    // Without colour, the grey image is the same and no channels are made.
+    settings.colour = false;
+    let plain = r.render(&Iso3::identity(), &scene, &settings);
+    assert!(plain.rgb.is_empty());
+    assert_eq!(plain.dn, img.dn);
+}

@@ -1,0 +1,310 @@
+//! The simulated cart (`agent cart`, started by `agent run --sim` / `agent auto --sim`
+//! as a separate process): an LBR iiwa behind a real FRI server on UDP, and its flange
+//! camera rendering the scene into the same iceoryx2 services a RealSense process
+//! would fill. The agent talks to it exactly as to hardware: FRI datagrams in and out,
+//! frames from shared memory.
+//!
+//! Truth stays here. The arm's true kinematics are the nominal ones with the scene's
+//! kinematic errors drawn for the seed; the FRI controller reports the joints with
+//! encoder noise; each time the arm comes to rest it settles with the repeatability
+//! wobble; the camera renders from the true flange pose through the true mount.
+
+use std::net::{SocketAddr, UdpSocket};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use anyhow::Context;
+use b2b_calib::camera::CameraModel;
+use b2b_sim::Iso3;
+use b2b_sim::kinematics::{Arm, IiwaModel};
+use b2b_sim::render::{RenderSettings, Renderer};
+use b2b_sim::scene::Scene;
+use b2b_sim::sensor::{DepthImage, GreyImage, expose};
+use kuka_fri::messages::MAX_DATAGRAM_SIZE;
+use kuka_fri::{JointLimits, Joints, SessionState, SimConfig, SimulatedController};
+use rand::SeedableRng;
+
+/// One rendered frame, as the camera process publishes it.
+#[derive(Debug, Clone)]
+pub struct RenderedFrame {
+    pub number: u64,
+    /// Start of the exposure, ns since the Unix epoch (host clock).
+    pub timestamp_ns: u64,
+    pub camera: CameraModel,
+    pub grey: GreyImage,
+    pub depth: Option<DepthImage>,
+}
+
+/// Where the cart's camera puts its frames (iceoryx2 in the cart process).
+pub trait FrameSink {
+    fn publish(&mut self, frame: &RenderedFrame) -> anyhow::Result<()>;
+}
+
+/// Settings of the simulated cart.
+#[derive(Debug, Clone)]
+pub struct CartOptions {
+    pub scene: PathBuf,
+    pub robot: String,
+    /// The FRI client (the agent) to send monitoring messages to.
+    pub client: SocketAddr,
+    /// The controller's own address.
+    pub bind: SocketAddr,
+    pub seed: u64,
+    pub send_period_ms: u32,
+    /// Longest the cart runs without hearing from its client.
+    pub idle_timeout: Duration,
+}
+
+/// The robot's joint limits as the controller enforces them.
+pub fn fri_limits(model: IiwaModel) -> JointLimits {
+    match model {
+        IiwaModel::Iiwa7R800 => JointLimits::iiwa7(),
+        IiwaModel::Iiwa14R820 => JointLimits::iiwa14(),
+    }
+}
+
+fn now_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+#[derive(Debug, Clone, Copy)]
+struct ArmState {
+    q: Joints,
+    /// Last time the client was heard from.
+    heard: Instant,
+}
+
+/// Runs the cart until `stop` is set or the client is silent for the idle timeout.
+/// `on_ready` is called with the controller's address once the socket is bound.
+pub fn run_cart(
+    opts: &CartOptions,
+    sink: &mut dyn FrameSink,
+    stop: &AtomicBool,
+) -> anyhow::Result<u64> {
+    let scene = Scene::load(&opts.scene)?;
+    let r = scene
+        .robots
+        .iter()
+        .position(|s| s.id == opts.robot)
+        .with_context(|| format!("robot '{}' is not in {}", opts.robot, opts.scene.display()))?;
+    let spec = &scene.robots[r];
+    let camera = scene.camera(r)?;
+    let renderer = Renderer::new(&camera)?;
+    let (geometry, _, _) = b2b_sim::generate::scene_geometry(&scene, &opts.scene)?;
+    let base1_from_base2 = scene
+        .base1_from_base2
+        .to_iso(&opts.scene, "base1_from_base2")?;
+    let world_from_base = if r == 0 {
+        Iso3::identity()
+    } else {
+        base1_from_base2
+    };
+    let flange_from_camera = spec
+        .flange_from_camera
+        .to_iso(&opts.scene, &format!("robots[{r}].flange_from_camera"))?;
+    let nominal = Arm::new(spec.model);
+    // The same robot realisation `sim generate` draws for this scene and seed
+    // (stream 1 of robot r), so the dataset's touch points were made by these very
+    // arms and `coordinator verify` can check a live result against them.
+    let mut realisation = b2b_sim::Rng::seed_from_u64(opts.seed);
+    realisation.set_stream((1u64 << 48) | ((r as u64) << 32));
+    let robot = spec.error.realise(&nominal, &mut realisation)?;
+    let mut rng = b2b_sim::Rng::seed_from_u64(opts.seed);
+    rng.set_stream(0x0ca7_0000 + r as u64);
+
+    let socket = UdpSocket::bind(opts.bind)
+        .with_context(|| format!("cannot bind the FRI server to {}", opts.bind))?;
+    let cfg = SimConfig {
+        send_period_ms: opts.send_period_ms,
+        limits: fri_limits(spec.model),
+        initial_q: Arm::comfortable(),
+        encoder_noise: spec.error.encoder_sigma_rad,
+        seed: opts.seed.wrapping_add(r as u64 * 7919),
+        ..SimConfig::default()
+    };
+    let started = Instant::now();
+    let mut controller = SimulatedController::new(cfg, started)?;
+    let state = Arc::new(Mutex::new(ArmState {
+        q: controller.q(),
+        heard: started,
+    }));
+    let fri_stop = Arc::new(AtomicBool::new(false));
+    let fri = {
+        let state = Arc::clone(&state);
+        let fri_stop = Arc::clone(&fri_stop);
+        let client = opts.client;
+        std::thread::Builder::new()
+            .name("fri-server".into())
+            .spawn(move || -> anyhow::Result<()> {
+                let mut buf = vec![0u8; MAX_DATAGRAM_SIZE];
+                let mut rx = vec![0u8; MAX_DATAGRAM_SIZE + 1];
+                while !fri_stop.load(Ordering::SeqCst) {
+                    let now = Instant::now();
+                    // The robot application starts the FRI overlay once the
+                    // connection is good, as a Sunrise program would.
+                    if controller.state() == SessionState::MonitoringReady {
+                        controller.start_commanding();
+                    }
+                    while let Some(n) = controller.poll_transmit(now, &mut buf) {
+                        // A send error before the client binds is what hardware sees too.
+                        let _ = socket.send_to(&buf[..n], client);
+                    }
+                    let wait = controller
+                        .poll_timeout()
+                        .saturating_duration_since(Instant::now())
+                        .max(Duration::from_micros(100));
+                    socket.set_read_timeout(Some(wait))?;
+                    match socket.recv_from(&mut rx) {
+                        Ok((n, from)) if from == client => {
+                            if let Err(e) = controller.handle_datagram(Instant::now(), &rx[..n]) {
+                                tracing::warn!("cart: rejected FRI datagram: {e}");
+                            }
+                            if let Ok(mut s) = state.lock() {
+                                s.heard = Instant::now();
+                            }
+                        }
+                        Ok(_) => {}
+                        Err(e)
+                            if matches!(
+                                e.kind(),
+                                std::io::ErrorKind::WouldBlock
+                                    | std::io::ErrorKind::TimedOut
+                                    | std::io::ErrorKind::ConnectionRefused
+                            ) => {}
+                        Err(e) => return Err(e.into()),
+                    }
+                    if let Ok(mut s) = state.lock() {
+                        s.q = controller.q();
+                    }
+                }
+                let violations = controller.stats();
+                tracing::info!("cart: FRI server stopped: {violations:?}");
+                Ok(())
+            })?
+    };
+
+    let mut settings = RenderSettings::ideal();
+    settings.lighting = scene.lighting.clone();
+    settings.optics = scene.optics.clone();
+    let mut rest: Option<(Joints, Iso3)> = None;
+    let mut number = 0u64;
+    let outcome = (|| -> anyhow::Result<()> {
+        while !stop.load(Ordering::SeqCst) {
+            let s = *state
+                .lock()
+                .map_err(|_| anyhow::anyhow!("cart state lock poisoned"))?;
+            if s.heard.elapsed() > opts.idle_timeout {
+                tracing::info!("cart: client silent for {:?}; stopping", opts.idle_timeout);
+                break;
+            }
+            if fri.is_finished() {
+                break;
+            }
+            // Settle: a fresh repeatability wobble every time the arm comes to rest
+            // somewhere new.
+            let base_from_flange = match rest {
+                Some((q, pose)) if q == s.q => pose,
+                _ => {
+                    let pose = robot.settle(&s.q, &mut rng).true_base_from_flange;
+                    rest = Some((s.q, pose));
+                    pose
+                }
+            };
+            let timestamp_ns = now_ns();
+            let camera_from_world =
+                (world_from_base * base_from_flange * flange_from_camera).inverse();
+            let irradiance = renderer.render(&camera_from_world, &geometry, &settings);
+            let grey = expose(&irradiance, &scene.noise, &mut rng);
+            let depth = scene.depth.map(|m| m.measure(&irradiance, &mut rng));
+            number += 1;
+            sink.publish(&RenderedFrame {
+                number,
+                timestamp_ns,
+                camera: camera.clone(),
+                grey,
+                depth,
+            })?;
+        }
+        Ok(())
+    })();
+    fri_stop.store(true, Ordering::SeqCst);
+    let fri_result = fri
+        .join()
+        .map_err(|_| anyhow::anyhow!("the FRI server thread panicked"))?;
+    outcome?;
+    fri_result?;
+    Ok(number)
+}
+
+/// The cart's camera publishing into iceoryx2, as the camera process does.
+pub struct IceoryxSink {
+    colour: b2b_frames::FramePublisher,
+    depth: Option<b2b_frames::FramePublisher>,
+}
+
+impl std::fmt::Debug for IceoryxSink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("IceoryxSink").finish_non_exhaustive()
+    }
+}
+
+impl IceoryxSink {
+    /// Publishers of `robot`'s streams under `prefix` (`b2b/camera` in deployment).
+    pub fn new(
+        prefix: &str,
+        robot: &str,
+        camera: &CameraModel,
+        depth: bool,
+    ) -> anyhow::Result<Self> {
+        use b2b_frames::{Stream, service_name_in};
+        let pixels = camera.width as usize * camera.height as usize;
+        let colour = b2b_frames::FramePublisher::new(
+            &service_name_in(prefix, robot, Stream::Colour),
+            pixels,
+        )?;
+        let depth = if depth {
+            Some(b2b_frames::FramePublisher::new(
+                &service_name_in(prefix, robot, Stream::Depth),
+                pixels * 2,
+            )?)
+        } else {
+            None
+        };
+        Ok(IceoryxSink { colour, depth })
+    }
+}
+
+fn header(kind: b2b_frames::StreamKind, frame: &RenderedFrame) -> b2b_frames::FrameHeader {
+    let c = &frame.camera;
+    let mut dist = [0.0; 5];
+    for (d, v) in dist.iter_mut().zip(&c.dist) {
+        *d = *v;
+    }
+    b2b_frames::FrameHeader::new(kind, c.width, c.height)
+        .with_intrinsics(c.fx, c.fy, c.cx, c.cy, dist)
+        .at(frame.number, frame.timestamp_ns)
+}
+
+impl FrameSink for IceoryxSink {
+    fn publish(&mut self, frame: &RenderedFrame) -> anyhow::Result<()> {
+        let h = header(b2b_frames::StreamKind::Gray8, frame);
+        self.colour.update_connections()?;
+        self.colour
+            .publish_with(&h, |buf| buf.copy_from_slice(&frame.grey.data))?;
+        if let (Some(p), Some(d)) = (&mut self.depth, &frame.depth) {
+            let mut h = header(b2b_frames::StreamKind::Z16, frame);
+            h.depth_unit_m = d.unit_m;
+            p.update_connections()?;
+            p.publish_with(&h, |buf| {
+                for (out, v) in buf.chunks_exact_mut(2).zip(&d.data) {
+                    out.copy_from_slice(&v.to_le_bytes());
+                }
+            })?;
+        }
+        Ok(())
+    }
+}
