@@ -13,7 +13,6 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
-use b2b_pipeline::base_to_base_from_observations;
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
     AgentStatus, Capture, HandEyeUpdate, KEY_ROOT, agent_key, coordinator_alive_key, result_key,
@@ -35,6 +34,9 @@ pub struct RunOptions {
     /// Robot order (robot 1 first); default: robot ids sorted.
     pub order: Option<Vec<String>>,
     pub refine: RefineOptions,
+    /// `board` or `multimarker` (the same joint problem over the target points the
+    /// agents report; the name goes into the result).
+    pub method: b2b_pipeline::B2bMethod,
 }
 
 /// Counters of what arrived.
@@ -122,10 +124,11 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
     let centre = Point3::from(
         pts.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / pts.len() as f64,
     );
-    Ok(base_to_base_from_observations(
+    Ok(b2b_pipeline::base_to_base_from_observations_with(
         [&o1, &o2],
         &centre,
         &opts.refine,
+        opts.method,
     )?)
 }
 

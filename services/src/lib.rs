@@ -107,10 +107,10 @@ impl RerunArgs {
 
 /// Closes a recording; a viewer that went away is a warning, not a failed run.
 pub fn finish_recording(rec: b2b_viz::Recorder) {
-    let enabled = rec.is_enabled();
-    if let Err(e) = rec.finish()
-        && enabled
-    {
+    if !rec.is_enabled() {
+        return;
+    }
+    if let Err(e) = rec.finish() {
         eprintln!("warning: the rerun recording did not finish cleanly: {e}");
     }
 }

@@ -704,14 +704,16 @@ impl CaptureSource for LiveSource {
         let t = &self.timings;
         let n = t.captures.max(1) as f64;
         Some(format!(
-            "{} captures ({}), {} retries; per capture: compute {:.1} ms (plan {:.1}, detect {:.1}, decide {:.2}), motion {:.0} ms, frame wait {:.0} ms; frames passed over while moving {}",
+            "{} captures ({}), {} retries; plans: {} in {:.0} ms; per capture: compute {:.1} ms (detect {:.1}, decide {:.2}; with the plans amortised {:.1}), motion {:.0} ms, frame wait {:.0} ms; frames passed over while moving {}",
             t.captures,
             self.stopped_because.as_deref().unwrap_or("stopped"),
             t.retries,
-            (t.plan_ms + t.detect_ms + t.decide_ms) / n,
-            t.plan_ms / n,
+            self.plans,
+            t.plan_ms,
+            (t.detect_ms + t.decide_ms) / n,
             t.detect_ms / n,
             t.decide_ms / n,
+            (t.plan_ms + t.detect_ms + t.decide_ms) / n,
             t.motion_ms / n,
             t.frame_wait_ms / n,
             self.frames.dropped()

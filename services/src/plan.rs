@@ -170,7 +170,7 @@ pub fn leg_is_safe(guard: &SafetyGuard, a: &Joints, b: &Joints, step: f64) -> bo
         return false;
     }
     let largest = joint_distance(a, b);
-    if !largest.is_finite() || !(step.is_finite() && step > 0.0) {
+    if !(largest.is_finite() && step.is_finite() && step > 0.0) {
         return false;
     }
     let n = (largest / step).ceil().max(1.0) as usize;
@@ -209,6 +209,14 @@ pub fn reach(
     seed: &Joints,
 ) -> Result<(Joints, Iso3), String> {
     let wanted = base_from_camera * scene.flange_from_camera.inverse();
+    // Out of reach for certain: the wrist centre (the flange minus the last link
+    // along its axis) further from the shoulder than the two arm links can stretch.
+    let dh = &scene.arm.dh;
+    let shoulder = nalgebra::Vector3::new(0.0, 0.0, dh[0].d);
+    let wrist = (wanted * Point3::new(0.0, 0.0, -dh[6].d)).coords;
+    if (wrist - shoulder).norm() > dh[2].d.abs() + dh[4].d.abs() - 1e-3 {
+        return Err("out of the arm's reach".to_owned());
+    }
     let margin = scene.guard.position_margin().max(2f64.to_radians());
     let opts = IkOptions {
         tolerance_m: 1e-7,

@@ -408,7 +408,7 @@ pub fn calibrate_intrinsics_from_dir(
     }
     let mut result = calibrate_intrinsics(&same, target, options).map_err(|e| match e {
         VisionError::Intrinsics(msg) if !unreadable.is_empty() => VisionError::Intrinsics(format!(
-            "{msg}; also unreadable: [{}]",
+            "{msg}; also not used: [{}]",
             unreadable
                 .iter()
                 .map(|r| format!("{}: {}", r.name, r.rejected.as_deref().unwrap_or("")))

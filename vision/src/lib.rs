@@ -90,6 +90,7 @@
 mod error;
 
 pub mod checkerboard;
+pub mod features;
 pub mod image;
 pub mod intrinsics;
 pub mod markers;

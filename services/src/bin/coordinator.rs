@@ -31,7 +31,7 @@ enum Command {
     /// compute base1_from_base2, publish it and write RESULT.json (Ctrl-C: compute
     /// with what has arrived).
     Run {
-        /// board (multimarker and rgbd are not available live yet).
+        /// board or multimarker (rgbd is not available live yet).
         #[arg(long, default_value = "board")]
         method: String,
         /// zenoh configuration file (JSON5); default: loopback peer listening on
@@ -121,9 +121,10 @@ fn main() -> std::process::ExitCode {
             rerun,
         } => {
             let recorder = rerun.recorder("b2b-coordinator")?;
+            let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
             anyhow::ensure!(
-                method == "board",
-                "method '{method}' is not available live yet (board only)"
+                method != B2bMethod::Rgbd,
+                "method rgbd is not available live yet (board or multimarker)"
             );
             let stop = stop_flag();
             let opts = b2b_services::coordinator::RunOptions {
@@ -132,6 +133,7 @@ fn main() -> std::process::ExitCode {
                 robots: 2,
                 order: robots.clone(),
                 refine: noise.options()?,
+                method,
             };
             let (result, counters) = b2b_services::coordinator::run(&opts, &stop)?;
             write_result(&out, &result).context("writing the result")?;
