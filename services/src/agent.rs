@@ -407,18 +407,21 @@ pub fn run_agent(
             }
             if opts.rerun.is_enabled() {
                 let base = b2b_viz::Base::One;
-                let logged = opts.rerun.log_capture(base, &msg).and_then(|()| match &cap.pixels {
-                    Some(p) => opts.rerun.log_image(
-                        base,
-                        b2b_viz::ImageView {
-                            pixels: p,
-                            width: cap.camera.width,
-                            height: cap.camera.height,
-                            format: b2b_viz::PixelFormat::Gray,
-                        },
-                    ),
-                    None => Ok(()),
-                });
+                let logged = opts
+                    .rerun
+                    .log_capture(base, &msg)
+                    .and_then(|()| match &cap.pixels {
+                        Some(p) => opts.rerun.log_image(
+                            base,
+                            b2b_viz::ImageView {
+                                pixels: p,
+                                width: cap.camera.width,
+                                height: cap.camera.height,
+                                format: b2b_viz::PixelFormat::Gray,
+                            },
+                        ),
+                        None => Ok(()),
+                    });
                 if let Err(e) = logged {
                     tracing::warn!("rerun: {e}");
                 }

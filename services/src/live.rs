@@ -693,7 +693,9 @@ impl CaptureSource for LiveSource {
         let cap = self.visit(&v, progress, stop)?;
         self.visited += 1;
         if let Ok(o) = &cap.observed {
-            self.observed_board(cap.base_from_flange * self.cfg.mount_approx * o.camera_from_target);
+            self.observed_board(
+                cap.base_from_flange * self.cfg.mount_approx * o.camera_from_target,
+            );
         }
         self.captured += 1;
         self.timings.captures += 1;

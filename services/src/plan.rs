@@ -184,14 +184,17 @@ pub fn leg_is_safe(guard: &SafetyGuard, a: &Joints, b: &Joints, step: f64) -> bo
     let spacing = points
         .windows(2)
         .map(|w| {
-            ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2) + (w[1][2] - w[0][2]).powi(2))
-                .sqrt()
+            ((w[1][0] - w[0][0]).powi(2)
+                + (w[1][1] - w[0][1]).powi(2)
+                + (w[1][2] - w[0][2]).powi(2))
+            .sqrt()
         })
         .fold(0.0, f64::max);
     let ws = guard.workspace();
-    points.iter().all(|p| {
-        (0..3).all(|k| p[k] >= ws.min[k] + spacing && p[k] <= ws.max[k] - spacing)
-    }) || n == 0
+    points
+        .iter()
+        .all(|p| (0..3).all(|k| p[k] >= ws.min[k] + spacing && p[k] <= ws.max[k] - spacing))
+        || n == 0
 }
 
 fn joint_distance(a: &Joints, b: &Joints) -> f64 {

@@ -11,13 +11,14 @@ fn dataset() -> PathBuf {
 }
 
 fn entities(rrd: &Path) -> Vec<String> {
-    let summary = b2b_viz::summarize_rrd(rrd)
-        .unwrap_or_else(|e| panic!("{}: {e}", rrd.display()));
+    let summary = b2b_viz::summarize_rrd(rrd).unwrap_or_else(|e| panic!("{}: {e}", rrd.display()));
     summary.keys().cloned().collect()
 }
 
 fn has(entities: &[String], wanted: &str) -> bool {
-    entities.iter().any(|e| e.trim_start_matches('/') == wanted.trim_start_matches('/'))
+    entities
+        .iter()
+        .any(|e| e.trim_start_matches('/') == wanted.trim_start_matches('/'))
 }
 
 #[test]
@@ -61,7 +62,10 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
         b2b_viz::paths::reprojected(b2b_viz::Base::One),
         b2b_viz::paths::rms(b2b_viz::Base::One),
     ] {
-        assert!(has(&e, &wanted), "{wanted} missing from the agent's recording: {e:?}");
+        assert!(
+            has(&e, &wanted),
+            "{wanted} missing from the agent's recording: {e:?}"
+        );
     }
 
     let result = dir.path().join("RESULT.json");
@@ -75,13 +79,20 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
         .arg(&calib_rrd)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let e = entities(&calib_rrd);
     for wanted in [
         b2b_viz::paths::base(b2b_viz::Base::One),
         b2b_viz::paths::base(b2b_viz::Base::Two),
     ] {
-        assert!(has(&e, &wanted), "{wanted} missing from the calibration's recording: {e:?}");
+        assert!(
+            has(&e, &wanted),
+            "{wanted} missing from the calibration's recording: {e:?}"
+        );
     }
 
     let verify_rrd = dir.path().join("verify.rrd");
@@ -94,7 +105,11 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
         .arg(&verify_rrd)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let e = entities(&verify_rrd);
     assert!(
         has(&e, b2b_viz::paths::TOUCHES),

@@ -79,10 +79,7 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
     for robot in ["robot1", "robot2"] {
         // The setup sheet puts the board 6 cm and 5 deg away from where it is.
         let mut setup = CellSetup::from_scene(&scene, robot).unwrap();
-        let board = setup
-            .base_from_target_approx
-            .to_isometry("board")
-            .unwrap()
+        let board = setup.base_from_target_approx.to_isometry("board").unwrap()
             * Isometry3::from_parts(
                 Translation3::new(0.05, 0.035, 0.0),
                 UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, 5f64.to_radians())),
@@ -129,7 +126,10 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             .and_then(|head| head.rsplit(' ').next())
             .and_then(|n| n.parse().ok())
             .unwrap_or(0);
-        assert!(retries > 0, "{robot}: the off-centre board was never re-centred: {summary}");
+        assert!(
+            retries > 0,
+            "{robot}: the off-centre board was never re-centred: {summary}"
+        );
     }
     while !result_file.exists() {
         assert!(Instant::now() < deadline, "no RESULT.json");

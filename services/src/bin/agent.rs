@@ -11,7 +11,9 @@ use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::{HandEyeChoice, hand_eye, load_dataset, observe_robot};
 use std::sync::Arc;
 
-use b2b_services::{RerunArgs, RobotNoiseArgs, finish_recording, init_logging, run_main, write_json};
+use b2b_services::{
+    RerunArgs, RobotNoiseArgs, finish_recording, init_logging, run_main, write_json,
+};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -281,44 +283,44 @@ fn main() -> std::process::ExitCode {
         } => {
             let recorder = Arc::new(rerun.recorder(&format!("b2b-agent-{robot}"))?);
             let outcome = (|| {
-            if sim.is_some() || fri.is_some() {
+                if sim.is_some() || fri.is_some() {
+                    let stop = b2b_services::stop_flag();
+                    let (mut source, _cart) = connect(
+                        &robot,
+                        sim.as_deref(),
+                        fri.as_deref(),
+                        &live,
+                        b2b_services::live::LiveMode::Program,
+                    )?;
+                    let opts = b2b_services::agent::AgentOptions {
+                        robot: robot.clone(),
+                        zenoh,
+                        state_dir,
+                        pace: Duration::from_millis(pace_ms),
+                        wait_result: Duration::from_secs(wait_result_s),
+                        progress: !quiet,
+                        refine: live.noise.options()?,
+                        rerun: Arc::clone(&recorder),
+                    };
+                    let result = b2b_services::agent::run_agent(&opts, &mut source, &stop)?;
+                    return print_result(&robot, result, wait_result_s);
+                }
+                let Some(dataset) = replay else {
+                    anyhow::bail!("give a source: --replay DIR, --sim SCENE or --fri HOST:PORT");
+                };
                 let stop = b2b_services::stop_flag();
-                let (mut source, _cart) = connect(
-                    &robot,
-                    sim.as_deref(),
-                    fri.as_deref(),
-                    &live,
-                    b2b_services::live::LiveMode::Program,
-                )?;
-                let opts = b2b_services::agent::AgentOptions {
+                let opts = b2b_services::agent::ReplayOptions {
                     robot: robot.clone(),
+                    dataset,
                     zenoh,
                     state_dir,
                     pace: Duration::from_millis(pace_ms),
                     wait_result: Duration::from_secs(wait_result_s),
                     progress: !quiet,
-                    refine: live.noise.options()?,
                     rerun: Arc::clone(&recorder),
                 };
-                let result = b2b_services::agent::run_agent(&opts, &mut source, &stop)?;
-                return print_result(&robot, result, wait_result_s);
-            }
-            let Some(dataset) = replay else {
-                anyhow::bail!("give a source: --replay DIR, --sim SCENE or --fri HOST:PORT");
-            };
-            let stop = b2b_services::stop_flag();
-            let opts = b2b_services::agent::ReplayOptions {
-                robot: robot.clone(),
-                dataset,
-                zenoh,
-                state_dir,
-                pace: Duration::from_millis(pace_ms),
-                wait_result: Duration::from_secs(wait_result_s),
-                progress: !quiet,
-                rerun: Arc::clone(&recorder),
-            };
-            let result = b2b_services::agent::run_replay(&opts, &stop)?;
-            print_result(&robot, result, wait_result_s)
+                let result = b2b_services::agent::run_replay(&opts, &stop)?;
+                print_result(&robot, result, wait_result_s)
             })();
             if let Ok(rec) = Arc::try_unwrap(recorder) {
                 finish_recording(rec);
@@ -510,7 +512,11 @@ fn main() -> std::process::ExitCode {
                         recorder.log_flange(base, &o.board.base_from_flange)?;
                         recorder.log_corners(
                             base,
-                            &o.board.pixels.iter().map(|p| [p.x, p.y]).collect::<Vec<_>>(),
+                            &o.board
+                                .pixels
+                                .iter()
+                                .map(|p| [p.x, p.y])
+                                .collect::<Vec<_>>(),
                             &[],
                         )?;
                         recorder.log_residual(base, o.pnp_rms_px)

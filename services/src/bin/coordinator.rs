@@ -241,8 +241,7 @@ fn main() -> std::process::ExitCode {
             tip_sigma_mm,
             out,
         } => {
-            let mut inputs =
-                b2b_report::ReportInputs::from_files(&result, verify_file.as_deref())?;
+            let mut inputs = b2b_report::ReportInputs::from_files(&result, verify_file.as_deref())?;
             for f in &hand_eye {
                 inputs.add_hand_eye_file(f)?;
             }
