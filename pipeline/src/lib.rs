@@ -16,6 +16,8 @@
 //!    target points and does not assume a plane); each needs its kind of target.
 //! 4. [`verify`]: the touch-point check of a result.
 
+pub mod rgbd;
+
 use std::path::Path;
 use std::str::FromStr;
 use std::time::Instant;
@@ -552,9 +554,8 @@ pub fn base_to_base(
             )));
         }
         (B2bMethod::Rgbd, _) => {
-            return Err(PipelineError::Unsupported(
-                "method rgbd is not implemented yet".into(),
-            ));
+            return rgbd::rgbd_base_to_base(ds, options, &rgbd::RgbdOptions::default())
+                .map(|r| r.result);
         }
     }
     if ds.manifest.robots.len() != 2 {
@@ -598,7 +599,7 @@ pub fn base_to_base_from_observations_with(
 ) -> Result<CalibrationResult, PipelineError> {
     if method == B2bMethod::Rgbd {
         return Err(PipelineError::Unsupported(
-            "method rgbd is not implemented yet".into(),
+            "method rgbd needs the images and depth of a dataset (coordinator calibrate --method rgbd); captures on the bus carry neither".into(),
         ));
     }
     let [obs1, obs2] = robots;

@@ -1,0 +1,690 @@
+//! The RGB-D feature method: `base1_from_base2` from features seen by both arms'
+//! cameras, lifted to 3-D with the aligned depth images. No target is needed in the
+//! images themselves; the hand-eyes come from the caller (or, in
+//! [`rgbd_base_to_base`], from the dataset's board through [`crate::hand_eye`]).
+//!
+//! 1. Per image: features ([`b2b_vision::features`], SIFT by default).
+//! 2. Per image pair (robot 1 capture i, robot 2 capture j): ratio-test and
+//!    cross-checked matches; each end lifted to 3-D ([`lift_pixel`]: the pixel is
+//!    undistorted with the camera model, its z-depth interpolated bilinearly; holes
+//!    (0) and depth discontinuities are skipped).
+//! 3. RANSAC + Umeyama (`b2b_calib::procrustes::ransac_rigid`) gives
+//!    `camera1_from_camera2`; fewer than [`RgbdOptions::min_inliers`] inliers rejects the
+//!    pair with the reason. Chained:
+//!    `base1_from_base2 = base1_from_flange1 · flange1_from_camera1 · camera1_from_camera2
+//!    · (base2_from_flange2 · flange2_from_camera2)⁻¹`.
+//! 4. [`combine_pairs`]: the pairs' estimates are screened against their median
+//!    (translation: component-wise median; rotation: the medoid) with a MAD rule:
+//!    a pair is rejected when its distance exceeds
+//!    `max(k · 1.4826 · MAD, floor)` (k = 3, floors 5 mm and 0.5°). The accepted ones
+//!    are averaged, weighted by inlier count: rotations by Markley's average,
+//!    translations by the weighted mean. The covariance is the weighted spread of the
+//!    accepted pairs (left perturbations `[ω, v]` about the mean) divided by their
+//!    number, with a floor from the RANSAC residuals so a single pair is not reported
+//!    as exact. Given the hand-eyes' covariances, their propagation is added (not
+//!    divided by the number of pairs: all pairs share the same hand-eye error).
+
+use std::time::Instant;
+
+use b2b_calib::camera::CameraModel;
+use b2b_calib::metrics::{predicted_error, workspace_points};
+use b2b_calib::pose::{adjoint, average_rotations, geodesic_angle, left_difference};
+use b2b_calib::procrustes::{RansacOptions, ransac_rigid};
+use b2b_calib::refine::RefineOptions;
+use b2b_calib::{CalibError, Iso3};
+use b2b_dataset::Dataset;
+use b2b_protocol::{
+    CalibrationResult, CaptureSummary, Pose, PredictedError, RESULT_FORMAT, RejectedCapture,
+    Timings,
+};
+use b2b_vision::features::{
+    DepthImage, FeatureMatch, FeatureOptions, Features, detect_features, load_depth, match_features,
+};
+use nalgebra::{Matrix6, Point2, Point3, Translation3, Vector3};
+
+use crate::{HandEyeChoice, PipelineError, RobotSetup, hand_eye, observe_robot};
+
+/// Settings of the RGB-D method.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RgbdOptions {
+    pub features: FeatureOptions,
+    /// RANSAC over the lifted matches; `threshold` is the 3-D inlier distance (m).
+    pub ransac: RansacOptions,
+    /// A pair with fewer RANSAC inliers is rejected.
+    pub min_inliers: usize,
+    /// A depth sample is a discontinuity when its 3x3 neighbourhood spans more than
+    /// `depth_jump_rel · z + depth_jump_abs_m`.
+    pub depth_jump_rel: f64,
+    pub depth_jump_abs_m: f64,
+    /// Depth outside this range (m) is not used.
+    pub min_depth_m: f64,
+    pub max_depth_m: f64,
+    /// MAD rule for pairs: reject beyond `max(k · 1.4826 · MAD, floor)`.
+    pub mad_k: f64,
+    pub translation_floor_m: f64,
+    pub rotation_floor_rad: f64,
+}
+
+impl Default for RgbdOptions {
+    fn default() -> Self {
+        RgbdOptions {
+            features: FeatureOptions::default(),
+            ransac: RansacOptions {
+                threshold: 0.005,
+                iterations: 2000,
+                min_inliers: 3,
+                seed: 0,
+            },
+            min_inliers: 20,
+            depth_jump_rel: 0.02,
+            depth_jump_abs_m: 0.003,
+            min_depth_m: 0.1,
+            max_depth_m: 6.0,
+            mad_k: 3.0,
+            translation_floor_m: 0.005,
+            rotation_floor_rad: 0.5f64.to_radians(),
+        }
+    }
+}
+
+/// One capture's colour features and depth, with where it came from.
+#[derive(Debug)]
+pub struct RgbdView {
+    pub row: usize,
+    pub image: String,
+    pub base_from_flange: Iso3,
+    pub features: Features,
+    pub depth: DepthImage,
+    pub depth_unit_m: f64,
+}
+
+/// What happened to one image pair.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairEstimate {
+    /// Rows (1-based) of robot 1's and robot 2's `captures.csv`.
+    pub rows: [usize; 2],
+    pub matches: usize,
+    /// Matches with valid depth at both ends.
+    pub lifted: usize,
+    pub inliers: usize,
+    /// RMS 3-D residual of the inliers (m).
+    pub rms_m: f64,
+    /// RMS distance of the inlier points from their centroid in camera 1 (m).
+    pub spread_m: f64,
+    pub camera1_from_camera2: Option<Iso3>,
+    pub base1_from_base2: Option<Iso3>,
+    /// Accepted into the final average.
+    pub accepted: bool,
+    /// Why not, when rejected.
+    pub reason: Option<String>,
+}
+
+/// The method's result and what each pair contributed.
+#[derive(Debug, Clone)]
+pub struct RgbdRun {
+    pub result: CalibrationResult,
+    pub pairs: Vec<PairEstimate>,
+    /// The mean over accepted pairs of their inlier points' centroid, in base 1 (m):
+    /// the centre of the workspace over which the touch error is predicted.
+    pub scene_centre_in_base1: Point3<f64>,
+}
+
+/// Lifts a pixel to a 3-D point in the camera frame, or says why not: outside the
+/// image, a hole (0) in its 2x2 interpolation cell or 3x3 neighbourhood, a depth
+/// discontinuity, or depth outside the working range.
+pub fn lift_pixel(
+    camera: &CameraModel,
+    depth: &DepthImage,
+    unit_m: f64,
+    pixel: &Point2<f64>,
+    options: &RgbdOptions,
+) -> Result<Point3<f64>, &'static str> {
+    if !(pixel.x.is_finite() && pixel.y.is_finite()) {
+        return Err("non-finite pixel");
+    }
+    let (u0, v0) = (pixel.x.floor() as i64, pixel.y.floor() as i64);
+    let (uc, vc) = (pixel.x.round() as i64, pixel.y.round() as i64);
+    let (mut lo, mut hi) = (u16::MAX, 0u16);
+    for dv in -1..=1 {
+        for du in -1..=1 {
+            let d = depth
+                .at(uc + du, vc + dv)
+                .ok_or("outside the depth image")?;
+            if d == 0 {
+                return Err("depth hole");
+            }
+            lo = lo.min(d);
+            hi = hi.max(d);
+        }
+    }
+    let mut cell = [0.0f64; 4];
+    for (k, (du, dv)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
+        let d = depth
+            .at(u0 + du, v0 + dv)
+            .ok_or("outside the depth image")?;
+        if d == 0 {
+            return Err("depth hole");
+        }
+        cell[k] = f64::from(d) * unit_m;
+    }
+    let (fx, fy) = (pixel.x - u0 as f64, pixel.y - v0 as f64);
+    let z = (cell[0] * (1.0 - fx) + cell[1] * fx) * (1.0 - fy)
+        + (cell[2] * (1.0 - fx) + cell[3] * fx) * fy;
+    let span = f64::from(hi - lo) * unit_m;
+    if span > options.depth_jump_rel * z + options.depth_jump_abs_m {
+        return Err("depth discontinuity");
+    }
+    if z < options.min_depth_m || z > options.max_depth_m {
+        return Err("depth outside the working range");
+    }
+    let xy = camera.unproject(pixel);
+    Ok(Point3::new(xy.x * z, xy.y * z, z))
+}
+
+/// Lifts both ends of every match; returns the matched 3-D points in camera 1 and
+/// camera 2 (pairs where either end fails are skipped).
+pub fn lift_matches(
+    cameras: [&CameraModel; 2],
+    depths: [(&DepthImage, f64); 2],
+    matches: &[FeatureMatch],
+    options: &RgbdOptions,
+) -> (Vec<Point3<f64>>, Vec<Point3<f64>>) {
+    let mut p1 = Vec::with_capacity(matches.len());
+    let mut p2 = Vec::with_capacity(matches.len());
+    for m in matches {
+        let a = lift_pixel(cameras[0], depths[0].0, depths[0].1, &m.pixel1, options);
+        let b = lift_pixel(cameras[1], depths[1].0, depths[1].1, &m.pixel2, options);
+        if let (Ok(a), Ok(b)) = (a, b) {
+            p1.push(a);
+            p2.push(b);
+        }
+    }
+    (p1, p2)
+}
+
+/// A robust `camera1_from_camera2` from matched 3-D points.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraPairFit {
+    pub camera1_from_camera2: Iso3,
+    pub inliers: usize,
+    pub rms_m: f64,
+    pub spread_m: f64,
+    /// Inlier points in camera 1.
+    pub inlier_points1: Vec<Point3<f64>>,
+}
+
+/// RANSAC + Umeyama over matched 3-D points; fewer than `options.min_inliers`
+/// inliers (or no consensus at all) is an error that says how many there were.
+pub fn fit_camera_pair(
+    points1: &[Point3<f64>],
+    points2: &[Point3<f64>],
+    options: &RgbdOptions,
+) -> Result<CameraPairFit, PipelineError> {
+    let need = options.min_inliers.max(3);
+    if points1.len() < need {
+        return Err(PipelineError::Invalid(format!(
+            "{} matches with valid depth at both ends, need at least {need}",
+            points1.len()
+        )));
+    }
+    let ransac = RansacOptions {
+        min_inliers: need,
+        ..options.ransac
+    };
+    let fit = ransac_rigid(points1, points2, &ransac).map_err(|e| match e {
+        CalibError::NoConsensus { best, total, need } => PipelineError::Invalid(format!(
+            "RANSAC: best consensus {best} of {total} matches within {:.1} mm, need {need}",
+            options.ransac.threshold * 1e3
+        )),
+        other => PipelineError::Calib {
+            robot: "camera pair".into(),
+            source: other,
+        },
+    })?;
+    let inlier_points1: Vec<Point3<f64>> = points1
+        .iter()
+        .zip(&fit.inliers)
+        .filter(|(_, k)| **k)
+        .map(|(p, _)| *p)
+        .collect();
+    let inliers = inlier_points1.len();
+    if inliers < need {
+        return Err(PipelineError::Invalid(format!(
+            "{inliers} RANSAC inliers, need at least {need}"
+        )));
+    }
+    let c: Vector3<f64> = inlier_points1
+        .iter()
+        .map(|p| p.coords)
+        .sum::<Vector3<f64>>()
+        / inliers as f64;
+    let spread_m = (inlier_points1
+        .iter()
+        .map(|p| (p.coords - c).norm_squared())
+        .sum::<f64>()
+        / inliers as f64)
+        .sqrt();
+    Ok(CameraPairFit {
+        camera1_from_camera2: fit.a_from_b,
+        inliers,
+        rms_m: fit.rms,
+        spread_m,
+        inlier_points1,
+    })
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        0.0
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// The robust combination of per-pair `base1_from_base2` estimates.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Combined {
+    pub base1_from_base2: Iso3,
+    /// Left-perturbation covariance `[ω, v]`.
+    pub covariance: Matrix6<f64>,
+    /// Per input: accepted, or the reason it was rejected.
+    pub verdicts: Vec<Result<(), String>>,
+}
+
+/// Combines per-pair estimates `(base1_from_base2, inliers, rms_m, spread_m)`: MAD
+/// screening against the median, then the inlier-weighted average (see the module
+/// docs for the rule and thresholds).
+pub fn combine_pairs(
+    estimates: &[(Iso3, usize, f64, f64)],
+    options: &RgbdOptions,
+) -> Result<Combined, PipelineError> {
+    let n = estimates.len();
+    if n == 0 {
+        return Err(PipelineError::Invalid(
+            "rgbd: no image pair gave an estimate".into(),
+        ));
+    }
+    let t: Vec<Vector3<f64>> = estimates.iter().map(|e| e.0.translation.vector).collect();
+    let t_med = Vector3::from_fn(|i, _| median(&mut t.iter().map(|v| v[i]).collect::<Vec<_>>()));
+    // The rotation medoid: least summed angle to the others.
+    let medoid = (0..n)
+        .min_by(|&a, &b| {
+            let s = |i: usize| -> f64 {
+                estimates
+                    .iter()
+                    .map(|e| geodesic_angle(&estimates[i].0.rotation, &e.0.rotation))
+                    .sum()
+            };
+            s(a).total_cmp(&s(b))
+        })
+        .unwrap_or(0);
+    let r_ref = estimates[medoid].0.rotation;
+    let dt: Vec<f64> = t.iter().map(|v| (v - t_med).norm()).collect();
+    let dr: Vec<f64> = estimates
+        .iter()
+        .map(|e| geodesic_angle(&e.0.rotation, &r_ref))
+        .collect();
+    let gate_t =
+        (options.mad_k * 1.4826 * median(&mut dt.clone())).max(options.translation_floor_m);
+    let gate_r = (options.mad_k * 1.4826 * median(&mut dr.clone())).max(options.rotation_floor_rad);
+    let verdicts: Vec<Result<(), String>> = (0..n)
+        .map(|i| {
+            if dt[i] > gate_t {
+                Err(format!(
+                    "translation {:.1} mm from the median, gate {:.1} mm",
+                    dt[i] * 1e3,
+                    gate_t * 1e3
+                ))
+            } else if dr[i] > gate_r {
+                Err(format!(
+                    "rotation {:.2}° from the medoid, gate {:.2}°",
+                    dr[i].to_degrees(),
+                    gate_r.to_degrees()
+                ))
+            } else {
+                Ok(())
+            }
+        })
+        .collect();
+    let kept: Vec<usize> = (0..n).filter(|i| verdicts[*i].is_ok()).collect();
+    if kept.is_empty() {
+        return Err(PipelineError::Invalid(
+            "rgbd: every pair was rejected as an outlier".into(),
+        ));
+    }
+    let w: Vec<f64> = kept.iter().map(|&i| estimates[i].1 as f64).collect();
+    let wsum: f64 = w.iter().sum();
+    let rots: Vec<_> = kept.iter().map(|&i| estimates[i].0.rotation).collect();
+    let r = average_rotations(&rots, Some(&w)).map_err(|source| PipelineError::Calib {
+        robot: "rgbd pairs".into(),
+        source,
+    })?;
+    let t_mean: Vector3<f64> = kept
+        .iter()
+        .zip(&w)
+        .map(|(&i, wi)| estimates[i].0.translation.vector * *wi)
+        .sum::<Vector3<f64>>()
+        / wsum;
+    let mean = Iso3::from_parts(Translation3::from(t_mean), r);
+    let k = kept.len() as f64;
+    let mut spread = Matrix6::zeros();
+    let mut floor = Matrix6::zeros();
+    for (&i, wi) in kept.iter().zip(&w) {
+        let d = left_difference(&estimates[i].0, &mean);
+        spread += d * d.transpose() * *wi;
+        // A single pair's own precision: σ_t = rms/√inliers, σ_ω = σ_t / spread.
+        let (_, inl, rms, sp) = estimates[i];
+        let st2 = rms * rms / inl.max(1) as f64;
+        let sr2 = st2 / (sp * sp).max(1e-6);
+        let mut f = Matrix6::zeros();
+        for a in 0..3 {
+            f[(a, a)] = sr2;
+            f[(a + 3, a + 3)] = st2;
+        }
+        floor += f * *wi;
+    }
+    // Spread of the accepted pairs about their mean, divided by their number
+    // (the covariance of the mean); never below the pairs' own residual precision.
+    let covariance = spread / wsum / k + floor / wsum / k;
+    Ok(Combined {
+        base1_from_base2: mean,
+        covariance,
+        verdicts,
+    })
+}
+
+/// Loads one robot's colour features and depth, capture by capture; captures without
+/// depth or with unreadable files become rejected captures.
+pub fn load_views(
+    ds: &Dataset,
+    robot: &str,
+    options: &RgbdOptions,
+) -> Result<(Vec<RgbdView>, Vec<RejectedCapture>), PipelineError> {
+    let data = ds
+        .robot(robot)
+        .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+    let unit = ds
+        .robot_manifest(robot)
+        .and_then(|m| m.depth_unit_m)
+        .ok_or_else(|| {
+            PipelineError::Invalid(format!(
+                "{}: robot '{robot}' has no depth_unit_m: method rgbd needs depth images",
+                ds.root.join("dataset.json").display()
+            ))
+        })?;
+    let mut views = Vec::new();
+    let mut rejected = Vec::new();
+    for cap in &data.captures {
+        let image = cap.image.as_ref().map(|p| p.display().to_string());
+        let reject = |reason: String| RejectedCapture {
+            robot: robot.to_owned(),
+            image: image.clone(),
+            row: Some(cap.row),
+            reason,
+        };
+        let (Some(ip), Some(dp)) = (ds.image_path(robot, cap), ds.depth_path(robot, cap)) else {
+            rejected.push(reject("rgbd needs both a colour and a depth image".into()));
+            continue;
+        };
+        let loaded = b2b_vision::load_gray(&ip)
+            .and_then(|g| detect_features(&g, &options.features))
+            .and_then(|f| Ok((f, load_depth(&dp)?)));
+        match loaded {
+            Ok((features, depth)) => views.push(RgbdView {
+                row: cap.row,
+                image: image.clone().unwrap_or_default(),
+                base_from_flange: cap.base_from_flange,
+                features,
+                depth,
+                depth_unit_m: unit,
+            }),
+            Err(e) => rejected.push(reject(e.to_string())),
+        }
+    }
+    Ok((views, rejected))
+}
+
+/// The RGB-D method with given hand-eyes (`flange_from_camera` of robot 1 and 2)
+/// and, when known, their covariances (left perturbations `[ω, v]` in the flange, as
+/// [`b2b_calib::refine::HandEyeEstimate::flange_from_camera_covariance`]). The
+/// hand-eye covariances are propagated into the result's covariance unreduced by the
+/// number of pairs (every pair shares the same hand-eye error).
+pub fn rgbd_base_to_base_with_hand_eyes(
+    ds: &Dataset,
+    flange_from_camera: [Iso3; 2],
+    hand_eye_covariance: Option<[Matrix6<f64>; 2]>,
+    options: &RgbdOptions,
+) -> Result<RgbdRun, PipelineError> {
+    let start = Instant::now();
+    if ds.manifest.robots.len() != 2 {
+        return Err(PipelineError::Invalid(format!(
+            "{}: base-to-base needs exactly two robots, the manifest lists {}",
+            ds.root.join("dataset.json").display(),
+            ds.manifest.robots.len()
+        )));
+    }
+    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
+    let cam1 = RobotSetup::from_dataset(ds, &ids[0])?.camera;
+    let cam2 = RobotSetup::from_dataset(ds, &ids[1])?.camera;
+    let (v1, rej1) = load_views(ds, &ids[0], options)?;
+    let (v2, rej2) = load_views(ds, &ids[1], options)?;
+    let detect_ms = start.elapsed().as_secs_f64() * 1e3;
+    let solve_start = Instant::now();
+    let mut pairs = Vec::new();
+    let mut estimates = Vec::new();
+    let mut inlier_centres = Vec::new();
+    let mut flanges = Vec::new();
+    for a in &v1 {
+        for b in &v2 {
+            let mut pe = PairEstimate {
+                rows: [a.row, b.row],
+                matches: 0,
+                lifted: 0,
+                inliers: 0,
+                rms_m: 0.0,
+                spread_m: 0.0,
+                camera1_from_camera2: None,
+                base1_from_base2: None,
+                accepted: false,
+                reason: None,
+            };
+            let matches = match_features(&a.features, &b.features, &options.features)?;
+            pe.matches = matches.len();
+            let (p1, p2) = lift_matches(
+                [&cam1, &cam2],
+                [(&a.depth, a.depth_unit_m), (&b.depth, b.depth_unit_m)],
+                &matches,
+                options,
+            );
+            pe.lifted = p1.len();
+            match fit_camera_pair(&p1, &p2, options) {
+                Ok(fit) => {
+                    let base1_from_camera1 = a.base_from_flange * flange_from_camera[0];
+                    let base2_from_camera2 = b.base_from_flange * flange_from_camera[1];
+                    let b1b2 = base1_from_camera1
+                        * fit.camera1_from_camera2
+                        * base2_from_camera2.inverse();
+                    pe.inliers = fit.inliers;
+                    pe.rms_m = fit.rms_m;
+                    pe.spread_m = fit.spread_m;
+                    pe.camera1_from_camera2 = Some(fit.camera1_from_camera2);
+                    pe.base1_from_base2 = Some(b1b2);
+                    let c: Vector3<f64> = fit
+                        .inlier_points1
+                        .iter()
+                        .map(|p| (base1_from_camera1 * p).coords)
+                        .sum::<Vector3<f64>>()
+                        / fit.inliers as f64;
+                    estimates.push((b1b2, fit.inliers, fit.rms_m, fit.spread_m));
+                    inlier_centres.push((pairs.len(), c));
+                    flanges.push((a.base_from_flange, b.base_from_flange));
+                }
+                Err(e) => pe.reason = Some(e.to_string()),
+            }
+            tracing::debug!(
+                rows = ?pe.rows,
+                matches = pe.matches,
+                lifted = pe.lifted,
+                inliers = pe.inliers,
+                "rgbd pair"
+            );
+            pairs.push(pe);
+        }
+    }
+    if estimates.is_empty() {
+        let reasons: Vec<String> = pairs
+            .iter()
+            .map(|p| {
+                format!(
+                    "rows {}/{}: {}",
+                    p.rows[0],
+                    p.rows[1],
+                    p.reason.as_deref().unwrap_or("?")
+                )
+            })
+            .collect();
+        return Err(PipelineError::Invalid(format!(
+            "rgbd: no image pair has {} inliers ({} pairs tried, {} views of {}, {} of {}){}{}",
+            options.min_inliers,
+            pairs.len(),
+            v1.len(),
+            ids[0],
+            v2.len(),
+            ids[1],
+            if reasons.is_empty() { "" } else { ": " },
+            reasons.join("; ")
+        )));
+    }
+    let mut combined = combine_pairs(&estimates, options)?;
+    if let Some([c1, c2]) = hand_eye_covariance {
+        // base1_from_base2 = A·X1·C·(B·X2)⁻¹: a left perturbation δ1 of X1 moves it by
+        // adjoint(A)·δ1, one of X2 by -adjoint(base1_from_base2·B)·δ2 (first order);
+        // the weighted mean of the pairs moves by the weighted mean of those maps.
+        let mut j1 = Matrix6::zeros();
+        let mut j2 = Matrix6::zeros();
+        let mut wsum = 0.0;
+        for ((est, (a, b)), verdict) in estimates.iter().zip(&flanges).zip(&combined.verdicts) {
+            if verdict.is_ok() {
+                let w = est.1 as f64;
+                j1 += adjoint(a) * w;
+                j2 -= adjoint(&(combined.base1_from_base2 * b)) * w;
+                wsum += w;
+            }
+        }
+        let (j1, j2) = (j1 / wsum, j2 / wsum);
+        combined.covariance += j1 * c1 * j1.transpose() + j2 * c2 * j2.transpose();
+    }
+    let mut centre = Vector3::zeros();
+    let mut n_centre = 0.0f64;
+    for ((idx, c), verdict) in inlier_centres.iter().zip(&combined.verdicts) {
+        match verdict {
+            Ok(()) => {
+                pairs[*idx].accepted = true;
+                centre += c;
+                n_centre += 1.0;
+            }
+            Err(reason) => pairs[*idx].reason = Some(format!("outlier pair: {reason}")),
+        }
+    }
+    let centre = Point3::from(centre / n_centre.max(1.0));
+    let (mean, p95) = predicted_error(&combined.covariance, &workspace_points(&centre), 0.0);
+    let used_rows = |k: usize| -> std::collections::BTreeSet<usize> {
+        pairs
+            .iter()
+            .filter(|p| p.accepted)
+            .map(|p| p.rows[k])
+            .collect()
+    };
+    let (used1, used2) = (used_rows(0), used_rows(1));
+    let mut rejected = rej1;
+    rejected.extend(rej2);
+    for (k, (views, used)) in [(&v1, &used1), (&v2, &used2)].into_iter().enumerate() {
+        for v in views.iter().filter(|v| !used.contains(&v.row)) {
+            rejected.push(RejectedCapture {
+                robot: ids[k].clone(),
+                image: Some(v.image.clone()),
+                row: Some(v.row),
+                reason: "no accepted image pair (too few inliers with every image of the other robot, or outlier pairs)".into(),
+            });
+        }
+    }
+    let solve_ms = solve_start.elapsed().as_secs_f64() * 1e3;
+    let mut cov = [[0.0; 6]; 6];
+    let sym = (combined.covariance + combined.covariance.transpose()) * 0.5;
+    for (i, row) in cov.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = sym[(i, j)];
+        }
+    }
+    let result = CalibrationResult {
+        format: RESULT_FORMAT.to_owned(),
+        method: "rgbd".to_owned(),
+        base1_from_base2: Pose::from_isometry(&combined.base1_from_base2),
+        covariance: cov,
+        predicted_touch_error_m: PredictedError { mean, p95 },
+        hand_eye: [
+            (ids[0].clone(), Pose::from_isometry(&flange_from_camera[0])),
+            (ids[1].clone(), Pose::from_isometry(&flange_from_camera[1])),
+        ]
+        .into_iter()
+        .collect(),
+        captures: CaptureSummary {
+            used: [(ids[0].clone(), used1.len()), (ids[1].clone(), used2.len())]
+                .into_iter()
+                .collect(),
+            rejected,
+        },
+        timings_ms: Timings {
+            detect: detect_ms,
+            solve: solve_ms,
+            total: start.elapsed().as_secs_f64() * 1e3,
+        },
+    };
+    Ok(RgbdRun {
+        result,
+        pairs,
+        scene_centre_in_base1: centre,
+    })
+}
+
+/// The RGB-D method on a dataset, with each robot's hand-eye from the dataset's
+/// target (the pipeline's refined hand-eye, [`crate::hand_eye`]).
+pub fn rgbd_base_to_base(
+    ds: &Dataset,
+    refine: &RefineOptions,
+    options: &RgbdOptions,
+) -> Result<RgbdRun, PipelineError> {
+    let start = Instant::now();
+    if ds.manifest.robots.len() != 2 {
+        return Err(PipelineError::Invalid(format!(
+            "{}: base-to-base needs exactly two robots, the manifest lists {}",
+            ds.root.join("dataset.json").display(),
+            ds.manifest.robots.len()
+        )));
+    }
+    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
+    let obs1 = observe_robot(ds, &ids[0])?;
+    let obs2 = observe_robot(ds, &ids[1])?;
+    let he1 = hand_eye(&obs1, HandEyeChoice::Refined, refine)?;
+    let he2 = hand_eye(&obs2, HandEyeChoice::Refined, refine)?;
+    let hand_eye_ms = start.elapsed().as_secs_f64() * 1e3;
+    let mut run = rgbd_base_to_base_with_hand_eyes(
+        ds,
+        [
+            he1.estimate.flange_from_camera,
+            he2.estimate.flange_from_camera,
+        ],
+        Some([
+            he1.estimate.flange_from_camera_covariance,
+            he2.estimate.flange_from_camera_covariance,
+        ]),
+        options,
+    )?;
+    run.result.timings_ms.detect += hand_eye_ms;
+    run.result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
+    Ok(run)
+}
