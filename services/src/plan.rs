@@ -16,7 +16,7 @@
 use b2b_calib::camera::CameraModel;
 use b2b_sim::kinematics::{Arm, IkOptions};
 use kuka_fri::{Joints, SafetyGuard};
-use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
 type Iso3 = Isometry3<f64>;
 
@@ -128,19 +128,9 @@ pub fn target_centre(points: &[Point3<f64>]) -> Point3<f64> {
     Point3::from(sum / points.len() as f64)
 }
 
-/// A camera at `eye` looking at `centre`, image "up" towards `up_hint`, rolled by `roll`.
-pub fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, up_hint: &Vector3<f64>, roll: f64) -> Iso3 {
-    let z = (centre - eye).normalize();
-    let mut y = -(up_hint - z * z.dot(up_hint));
-    if y.norm() < 1e-6 {
-        y = z.cross(&Vector3::x());
-    }
-    let y = y.normalize();
-    let x = y.cross(&z);
-    let r = UnitQuaternion::from_matrix(&Matrix3::from_columns(&[x, y, z]))
-        * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), roll);
-    Iso3::from_parts(Translation3::from(eye.coords), r)
-}
+/// A camera at `eye` looking at `centre`, rolled about its view axis: the
+/// simulator's own aiming, so planned and generated viewpoints agree.
+pub use b2b_sim::generate::look_at;
 
 /// Whether every target point projects at least `margin` px inside the image.
 pub fn all_in_view(

@@ -54,7 +54,7 @@ pub struct GenerateOptions {
 }
 
 /// A camera at `eye` looking at `centre`, rolled about its view axis.
-fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, up_hint: &Vector3<f64>, roll: f64) -> Iso3 {
+pub fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, up_hint: &Vector3<f64>, roll: f64) -> Iso3 {
     let z = (centre - eye).normalize();
     // Image "down" (y) roughly along -up_hint projected on the image plane.
     let mut y = -(up_hint - z * z.dot(up_hint));
