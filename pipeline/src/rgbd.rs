@@ -33,12 +33,14 @@ use b2b_calib::procrustes::{RansacOptions, ransac_rigid};
 use b2b_calib::refine::RefineOptions;
 use b2b_calib::{CalibError, Iso3};
 use b2b_dataset::Dataset;
+use b2b_protocol::messages::FeatureSet;
 use b2b_protocol::{
     CalibrationResult, CaptureSummary, Pose, PredictedError, RESULT_FORMAT, RejectedCapture,
     Timings,
 };
 use b2b_vision::features::{
-    DepthImage, FeatureMatch, FeatureOptions, Features, detect_features, load_depth, match_features,
+    DepthImage, FeatureKind, FeatureMatch, FeatureOptions, Features, detect_features, load_depth,
+    match_features,
 };
 use nalgebra::{Matrix6, Point2, Point3, Translation3, Vector3};
 
@@ -87,15 +89,108 @@ impl Default for RgbdOptions {
     }
 }
 
-/// One capture's colour features and depth, with where it came from.
+/// One capture's colour features, each lifted to 3-D with the aligned depth, with
+/// where it came from.
 #[derive(Debug)]
 pub struct RgbdView {
+    /// 1-based row of the robot's `captures.csv` (live: capture index + 1).
     pub row: usize,
     pub image: String,
     pub base_from_flange: Iso3,
     pub features: Features,
-    pub depth: DepthImage,
-    pub depth_unit_m: f64,
+    /// Each keypoint in the camera frame ([`lift_pixel`]); `None` where its depth
+    /// is not usable.
+    pub points: Vec<Option<Point3<f64>>>,
+}
+
+impl RgbdView {
+    /// The view as an agent publishes it.
+    pub fn to_feature_set(&self) -> Result<FeatureSet, PipelineError> {
+        let (descriptor_len, descriptors) = self.features.descriptor_bytes()?;
+        Ok(FeatureSet {
+            kind: self.features.kind.name().to_owned(),
+            pixels: self.features.pixels.iter().map(|p| [p.x, p.y]).collect(),
+            responses: self.features.responses.clone(),
+            points_camera: self
+                .points
+                .iter()
+                .map(|p| p.map(|p| [p.x, p.y, p.z]))
+                .collect(),
+            descriptor_len,
+            descriptors,
+        })
+    }
+
+    /// A view from a published feature set (validated on receipt; checked again
+    /// here because the descriptors must make an OpenCV matrix).
+    pub fn from_feature_set(
+        row: usize,
+        image: String,
+        base_from_flange: Iso3,
+        set: &FeatureSet,
+    ) -> Result<RgbdView, PipelineError> {
+        let kind = FeatureKind::parse(&set.kind)?;
+        if set.points_camera.len() != set.pixels.len() {
+            return Err(PipelineError::Invalid(format!(
+                "features of row {row}: {} keypoints but {} points",
+                set.pixels.len(),
+                set.points_camera.len()
+            )));
+        }
+        let features = Features::from_parts(
+            kind,
+            set.pixels.iter().map(|p| Point2::new(p[0], p[1])).collect(),
+            set.responses.clone(),
+            set.descriptor_len,
+            &set.descriptors,
+        )?;
+        Ok(RgbdView {
+            row,
+            image,
+            base_from_flange,
+            features,
+            points: set
+                .points_camera
+                .iter()
+                .map(|p| p.map(Point3::from))
+                .collect(),
+        })
+    }
+}
+
+/// Lifts every keypoint ([`lift_pixel`]); `None` where the depth is not usable.
+pub fn lift_features(
+    camera: &CameraModel,
+    features: &Features,
+    depth: &DepthImage,
+    unit_m: f64,
+    options: &RgbdOptions,
+) -> Vec<Option<Point3<f64>>> {
+    features
+        .pixels
+        .iter()
+        .map(|p| lift_pixel(camera, depth, unit_m, p, options).ok())
+        .collect()
+}
+
+/// Detects features in a grey image and lifts them with its aligned depth: what an
+/// agent does per capture, and [`load_views`] per dataset row.
+pub fn detect_and_lift(
+    camera: &CameraModel,
+    gray: &b2b_vision::GrayImage,
+    depth: &DepthImage,
+    unit_m: f64,
+    options: &RgbdOptions,
+) -> Result<(Features, Vec<Option<Point3<f64>>>), PipelineError> {
+    if (depth.width, depth.height) != (camera.width, camera.height) {
+        return Err(PipelineError::Invalid(format!(
+            "depth image is {}x{}, the colour camera {}x{} (depth must be aligned to colour)",
+            depth.width, depth.height, camera.width, camera.height
+        )));
+    }
+    let features = detect_features(gray, &options.features)?;
+    let points = lift_features(camera, &features, depth, unit_m, options);
+    Ok((features, points))
 }
 
 /// What happened to one image pair.
@@ -416,6 +511,7 @@ pub fn load_views(
                 ds.root.join("dataset.json").display()
             ))
         })?;
+    let camera = RobotSetup::from_dataset(ds, robot)?.camera;
     let mut views = Vec::new();
     let mut rejected = Vec::new();
     for cap in &data.captures {
@@ -431,17 +527,18 @@ pub fn load_views(
             continue;
         };
         let loaded = b2b_vision::load_gray(&ip)
-            .and_then(|g| detect_features(&g, &options.features))
-            .and_then(|f| Ok((f, load_depth(&dp)?)));
-        match loaded {
-            Ok((features, depth)) => views.push(RgbdView {
+            .map_err(PipelineError::from)
+            .and_then(|g| Ok((g, load_depth(&dp)?)))
+            .and_then(|(g, depth)| detect_and_lift(&camera, &g, &depth, unit, options))
+            .map(|(features, points)| RgbdView {
                 row: cap.row,
                 image: image.clone().unwrap_or_default(),
                 base_from_flange: cap.base_from_flange,
                 features,
-                depth,
-                depth_unit_m: unit,
-            }),
+                points,
+            });
+        match loaded {
+            Ok(view) => views.push(view),
             Err(e) => rejected.push(reject(e.to_string())),
         }
     }
@@ -468,18 +565,45 @@ pub fn rgbd_base_to_base_with_hand_eyes(
         )));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
-    let cam1 = RobotSetup::from_dataset(ds, &ids[0])?.camera;
-    let cam2 = RobotSetup::from_dataset(ds, &ids[1])?.camera;
     let (v1, rej1) = load_views(ds, &ids[0], options)?;
     let (v2, rej2) = load_views(ds, &ids[1], options)?;
+    let mut rejected = rej1;
+    rejected.extend(rej2);
     let detect_ms = start.elapsed().as_secs_f64() * 1e3;
-    let solve_start = Instant::now();
+    let mut run = rgbd_from_views(
+        [&ids[0], &ids[1]],
+        [&v1, &v2],
+        rejected,
+        flange_from_camera,
+        hand_eye_covariance,
+        options,
+    )?;
+    run.result.timings_ms.detect = detect_ms;
+    run.result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
+    Ok(run)
+}
+
+/// The RGB-D method on views already made (a dataset's, or what the agents
+/// published): every pair of robot 1's and robot 2's views, then the robust
+/// combination. `rejected` are captures the caller already could not use; they are
+/// reported with the ones no accepted pair used.
+pub fn rgbd_from_views(
+    ids: [&str; 2],
+    views: [&[RgbdView]; 2],
+    rejected: Vec<RejectedCapture>,
+    flange_from_camera: [Iso3; 2],
+    hand_eye_covariance: Option<[Matrix6<f64>; 2]>,
+    options: &RgbdOptions,
+) -> Result<RgbdRun, PipelineError> {
+    let [v1, v2] = views;
+    let start = Instant::now();
+    let solve_start = start;
     let mut pairs = Vec::new();
     let mut estimates = Vec::new();
     let mut inlier_centres = Vec::new();
     let mut flanges = Vec::new();
-    for a in &v1 {
-        for b in &v2 {
+    for a in v1 {
+        for b in v2 {
             let mut pe = PairEstimate {
                 rows: [a.row, b.row],
                 matches: 0,
@@ -494,12 +618,13 @@ pub fn rgbd_base_to_base_with_hand_eyes(
             };
             let matches = match_features(&a.features, &b.features, &options.features)?;
             pe.matches = matches.len();
-            let (p1, p2) = lift_matches(
-                [&cam1, &cam2],
-                [(&a.depth, a.depth_unit_m), (&b.depth, b.depth_unit_m)],
-                &matches,
-                options,
-            );
+            let (p1, p2): (Vec<_>, Vec<_>) = matches
+                .iter()
+                .filter_map(|m| match (a.points.get(m.index1), b.points.get(m.index2)) {
+                    (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
+                    _ => None,
+                })
+                .unzip();
             pe.lifted = p1.len();
             match fit_camera_pair(&p1, &p2, options) {
                 Ok(fit) => {
@@ -600,12 +725,11 @@ pub fn rgbd_base_to_base_with_hand_eyes(
             .collect()
     };
     let (used1, used2) = (used_rows(0), used_rows(1));
-    let mut rejected = rej1;
-    rejected.extend(rej2);
-    for (k, (views, used)) in [(&v1, &used1), (&v2, &used2)].into_iter().enumerate() {
+    let mut rejected = rejected;
+    for (k, (views, used)) in [(v1, &used1), (v2, &used2)].into_iter().enumerate() {
         for v in views.iter().filter(|v| !used.contains(&v.row)) {
             rejected.push(RejectedCapture {
-                robot: ids[k].clone(),
+                robot: ids[k].to_owned(),
                 image: Some(v.image.clone()),
                 row: Some(v.row),
                 reason: "no accepted image pair (too few inliers with every image of the other robot, or outlier pairs)".into(),
@@ -627,19 +751,28 @@ pub fn rgbd_base_to_base_with_hand_eyes(
         covariance: cov,
         predicted_touch_error_m: PredictedError { mean, p95 },
         hand_eye: [
-            (ids[0].clone(), Pose::from_isometry(&flange_from_camera[0])),
-            (ids[1].clone(), Pose::from_isometry(&flange_from_camera[1])),
+            (
+                ids[0].to_owned(),
+                Pose::from_isometry(&flange_from_camera[0]),
+            ),
+            (
+                ids[1].to_owned(),
+                Pose::from_isometry(&flange_from_camera[1]),
+            ),
         ]
         .into_iter()
         .collect(),
         captures: CaptureSummary {
-            used: [(ids[0].clone(), used1.len()), (ids[1].clone(), used2.len())]
-                .into_iter()
-                .collect(),
+            used: [
+                (ids[0].to_owned(), used1.len()),
+                (ids[1].to_owned(), used2.len()),
+            ]
+            .into_iter()
+            .collect(),
             rejected,
         },
         timings_ms: Timings {
-            detect: detect_ms,
+            detect: 0.0,
             solve: solve_ms,
             total: start.elapsed().as_secs_f64() * 1e3,
         },

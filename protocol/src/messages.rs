@@ -195,12 +195,102 @@ pub struct Capture {
         skip_serializing_if = "Option::is_none"
     )]
     pub base_from_target: Option<Pose>,
+    /// Local image features lifted with the aligned depth, when the agent has depth
+    /// (the RGB-D method's input; independent of the board observation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub features: Option<FeatureSet>,
+}
+
+/// Local image features of one capture for the RGB-D method: keypoints, each one
+/// lifted to 3-D with the aligned depth where the depth there is valid, and their
+/// descriptors.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeatureSet {
+    /// `sift`, `akaze` or `orb`.
+    pub kind: String,
+    /// Keypoint positions (px, OpenCV convention).
+    pub pixels: Vec<[f64; 2]>,
+    /// Detector responses, paired with `pixels`.
+    pub responses: Vec<f64>,
+    /// Each keypoint in the camera frame (m); `null` where it has no valid depth.
+    pub points_camera: Vec<Option<[f64; 3]>>,
+    /// Bytes per descriptor.
+    pub descriptor_len: usize,
+    /// The descriptors, row after row (base64 on the wire).
+    #[serde(with = "base64_bytes")]
+    pub descriptors: Vec<u8>,
+}
+
+mod base64_bytes {
+    use base64::Engine;
+    use base64::engine::general_purpose::STANDARD;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(bytes: &[u8], s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&STANDARD.encode(bytes))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+        let text = String::deserialize(d)?;
+        STANDARD
+            .decode(text.as_bytes())
+            .map_err(|e| serde::de::Error::custom(format!("descriptors: not base64: {e}")))
+    }
+}
+
+impl Validate for FeatureSet {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        let bad = |reason: String| ProtocolError::BadField {
+            field: "features".into(),
+            reason,
+        };
+        if !matches!(self.kind.as_str(), "sift" | "akaze" | "orb") {
+            return Err(bad(format!(
+                "kind '{}': expected sift, akaze or orb",
+                self.kind
+            )));
+        }
+        let n = self.pixels.len();
+        if self.responses.len() != n || self.points_camera.len() != n {
+            return Err(bad(format!(
+                "{n} pixels, {} responses and {} points (need equal counts)",
+                self.responses.len(),
+                self.points_camera.len()
+            )));
+        }
+        if self.descriptors.len() != n * self.descriptor_len || (n > 0 && self.descriptor_len == 0)
+        {
+            return Err(bad(format!(
+                "{n} descriptors of {} bytes need {} bytes, got {}",
+                self.descriptor_len,
+                n * self.descriptor_len,
+                self.descriptors.len()
+            )));
+        }
+        finite("features.pixels", &self.pixels.concat())?;
+        finite("features.responses", &self.responses)?;
+        for (i, p) in self.points_camera.iter().enumerate() {
+            if let Some(p) = p {
+                finite(&format!("features.points_camera[{i}]"), p)?;
+                if p[2] <= 0.0 {
+                    return Err(bad(format!(
+                        "points_camera[{i}] has depth {} m: must be in front of the camera",
+                        p[2]
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Validate for Capture {
     fn validate(&self) -> Result<(), ProtocolError> {
         self.base_from_flange.to_isometry("T_base_flange")?;
         self.camera.validate()?;
+        if let Some(f) = &self.features {
+            f.validate()?;
+        }
         if let Some(t) = self.controller_time_s {
             finite("controller_time_s", &[t])?;
         }
@@ -319,6 +409,7 @@ mod tests {
             }),
             rejected: None,
             base_from_target: None,
+            features: None,
         }
     }
 

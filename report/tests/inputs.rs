@@ -147,6 +147,7 @@ fn richer_inputs_add_plots_and_the_output_is_deterministic() {
         }),
         rejected: None,
         base_from_target: None,
+        features: None,
     };
     let detail = CaptureDetail::from_capture("robot2", &capture).unwrap();
     // The camera is 0.5 m in front of the board: seen from the board, it is at -z.

@@ -71,6 +71,7 @@ fn pose_message() -> Vec<u8> {
         observation: None,
         rejected: Some("latency probe".into()),
         base_from_target: None,
+        features: None,
     };
     serde_json::to_vec(&Envelope::new("robot1", 1, body)).expect("serialise")
 }

@@ -18,12 +18,13 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
+use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, detect_and_lift};
 use b2b_pipeline::{
     HandEyeChoice, Observation, RobotObservations, RobotSetup, hand_eye, observe_capture,
 };
 use b2b_protocol::messages::{
-    AgentState, AgentStatus, BoardObservation, Capture, Envelope, HandEyeUpdate, Intrinsics,
-    agent_key, result_key,
+    AgentState, AgentStatus, BoardObservation, Capture, Envelope, FeatureSet, HandEyeUpdate,
+    Intrinsics, agent_key, result_key,
 };
 use b2b_protocol::{CalibrationResult, Pose};
 use zenoh::Wait;
@@ -105,6 +106,9 @@ pub struct ReplayOptions {
     pub wait_result: Duration,
     pub progress: bool,
     pub rerun: Arc<b2b_viz::Recorder>,
+    /// Local features for the RGB-D method, published with every capture that has
+    /// a depth image (`None`: not computed).
+    pub features: Option<b2b_vision::features::FeatureKind>,
 }
 
 /// What the agent knows so far, handed to the source before each capture (the
@@ -133,6 +137,9 @@ pub struct SourceCapture {
     pub observed: Result<Observation, b2b_protocol::RejectedCapture>,
     /// The grey image, when the source has it in memory (for the recording).
     pub pixels: Option<Vec<u8>>,
+    /// Local features lifted with the aligned depth (RGB-D method), when the
+    /// source has depth and was asked for them.
+    pub features: Option<b2b_protocol::messages::FeatureSet>,
 }
 
 /// Where captures come from: a dataset replay, the simulated cart, or a real arm.
@@ -162,6 +169,8 @@ pub struct ReplaySource {
     data: b2b_dataset::RobotData,
     next: usize,
     dataset: PathBuf,
+    /// Features for the RGB-D method (only for captures with depth).
+    features: Option<RgbdOptions>,
 }
 
 impl ReplaySource {
@@ -179,7 +188,49 @@ impl ReplaySource {
             data,
             next: 0,
             dataset: dataset.to_owned(),
+            features: None,
         })
+    }
+
+    /// Also detect features of this kind and lift them with the capture's depth
+    /// image (captures without depth publish none).
+    pub fn with_features(mut self, kind: b2b_vision::features::FeatureKind) -> Self {
+        let mut options = RgbdOptions::default();
+        options.features.kind = kind;
+        self.features = Some(options);
+        self
+    }
+
+    /// The capture's feature set, or why there is none (logged, not fatal: the
+    /// board observation still goes out, and the coordinator's RGB-D method
+    /// reports the capture as having no features).
+    fn feature_set(
+        &self,
+        cap: &b2b_dataset::Capture,
+        options: &RgbdOptions,
+    ) -> Result<Option<FeatureSet>, String> {
+        let robot = &self.setup.robot;
+        let Some(unit) = self.ds.robot_manifest(robot).and_then(|m| m.depth_unit_m) else {
+            return Ok(None);
+        };
+        let (Some(ip), Some(dp)) = (
+            self.ds.image_path(robot, cap),
+            self.ds.depth_path(robot, cap),
+        ) else {
+            return Ok(None);
+        };
+        let gray = b2b_vision::load_gray(&ip).map_err(|e| e.to_string())?;
+        let depth = b2b_vision::features::load_depth(&dp).map_err(|e| e.to_string())?;
+        let (features, points) = detect_and_lift(&self.setup.camera, &gray, &depth, unit, options)
+            .map_err(|e| format!("{}: {e}", dp.display()))?;
+        let view = RgbdView {
+            row: cap.row,
+            image: String::new(),
+            base_from_flange: cap.base_from_flange,
+            features,
+            points,
+        };
+        view.to_feature_set().map(Some).map_err(|e| e.to_string())
     }
 }
 
@@ -202,6 +253,13 @@ impl CaptureSource for ReplaySource {
         };
         let index = self.next as u64;
         self.next += 1;
+        let features = match &self.features {
+            Some(options) => self.feature_set(cap, options).unwrap_or_else(|reason| {
+                tracing::warn!("row {}: no features: {reason}", cap.row);
+                None
+            }),
+            None => None,
+        };
         Ok(Some(SourceCapture {
             index,
             image: cap.image.as_ref().map(|p| p.display().to_string()),
@@ -210,6 +268,7 @@ impl CaptureSource for ReplaySource {
             camera: self.setup.camera.clone(),
             observed: observe_capture(&self.ds, &self.setup, cap),
             pixels: None,
+            features,
         }))
     }
 }
@@ -249,6 +308,9 @@ pub fn run_replay(
 ) -> anyhow::Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_robot_id(&opts.robot)?;
     let mut source = ReplaySource::open(&opts.dataset, &opts.robot)?;
+    if let Some(kind) = opts.features {
+        source = source.with_features(kind);
+    }
     let agent = AgentOptions {
         robot: opts.robot.clone(),
         zenoh: opts.zenoh.clone(),
@@ -388,6 +450,7 @@ pub fn run_agent(
                 observation: None,
                 rejected: None,
                 base_from_target: None,
+                features: cap.features.clone(),
             };
             match &cap.observed {
                 Ok(o) => {

@@ -37,6 +37,8 @@ pub struct RunOptions {
     /// `board` or `multimarker` (the same joint problem over the target points the
     /// agents report; the name goes into the result).
     pub method: b2b_pipeline::B2bMethod,
+    /// Matching, RANSAC and pair screening of the RGB-D method.
+    pub rgbd: b2b_pipeline::rgbd::RgbdOptions,
 }
 
 /// Counters of what arrived.
@@ -114,6 +116,9 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
     );
     let o1 = store.observations(&ids[0])?;
     let o2 = store.observations(&ids[1])?;
+    if opts.method == b2b_pipeline::B2bMethod::Rgbd {
+        return compute_rgbd(store, [&ids[0], &ids[1]], [&o1, &o2], opts);
+    }
     // The board centre from the corner layout the agents reported.
     let pts = &o1
         .observations
@@ -130,6 +135,40 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
         &opts.refine,
         opts.method,
     )?)
+}
+
+/// The RGB-D method over the agents' feature sets, with each robot's hand-eye
+/// refined from its board observations (the same estimator as offline).
+fn compute_rgbd(
+    store: &Store,
+    ids: [&str; 2],
+    observations: [&b2b_pipeline::RobotObservations; 2],
+    opts: &RunOptions,
+) -> anyhow::Result<CalibrationResult> {
+    let start = Instant::now();
+    let mut flange_from_camera = Vec::new();
+    let mut covariance = Vec::new();
+    for (id, obs) in ids.iter().zip(observations) {
+        let he = b2b_pipeline::hand_eye(obs, b2b_pipeline::HandEyeChoice::Refined, &opts.refine)
+            .with_context(|| format!("robot '{id}': hand-eye for the RGB-D method"))?;
+        flange_from_camera.push(he.estimate.flange_from_camera);
+        covariance.push(he.estimate.flange_from_camera_covariance);
+    }
+    let hand_eye_ms = start.elapsed().as_secs_f64() * 1e3;
+    let (v1, mut rejected) = store.rgbd_views(ids[0])?;
+    let (v2, r2) = store.rgbd_views(ids[1])?;
+    rejected.extend(r2);
+    let mut run = b2b_pipeline::rgbd::rgbd_from_views(
+        ids,
+        [&v1, &v2],
+        rejected,
+        [flange_from_camera[0], flange_from_camera[1]],
+        Some([covariance[0], covariance[1]]),
+        &opts.rgbd,
+    )?;
+    run.result.timings_ms.detect = hand_eye_ms;
+    run.result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
+    Ok(run.result)
 }
 
 /// Runs until every agent has finished (or `stop` is set), then computes,

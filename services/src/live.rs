@@ -472,6 +472,7 @@ impl LiveSource {
                 camera: camera.clone(),
                 observed,
                 pixels: Some(frame.grey.clone()),
+                features: None,
             };
             let Some(a) = &auto else {
                 self.timings.decide_ms += ms(decide_started.elapsed());
@@ -587,6 +588,7 @@ impl LiveSource {
             camera: self.camera.clone().context("no camera intrinsics yet")?,
             observed: Err(self.reject(row, last_reason)),
             pixels: None,
+            features: None,
         })
     }
 

@@ -240,6 +240,43 @@ impl Store {
             detect_ms: 0.0,
         })
     }
+
+    /// A robot's published feature sets as the RGB-D method takes them; captures
+    /// without features (no depth, or the agent was not asked) are returned as
+    /// rejected with that reason.
+    pub fn rgbd_views(
+        &self,
+        robot: &str,
+    ) -> anyhow::Result<(Vec<b2b_pipeline::rgbd::RgbdView>, Vec<RejectedCapture>)> {
+        let caps = self
+            .captures
+            .get(robot)
+            .with_context(|| format!("no captures from robot '{robot}'"))?;
+        let mut views = Vec::new();
+        let mut rejected = Vec::new();
+        for (index, cap) in caps {
+            let row = *index as usize + 1;
+            let Some(set) = &cap.features else {
+                rejected.push(RejectedCapture {
+                    robot: robot.to_owned(),
+                    image: cap.image.clone(),
+                    row: Some(row),
+                    reason: "no features published (no depth image, or the agent ran without --features)"
+                        .into(),
+                });
+                continue;
+            };
+            let view = b2b_pipeline::rgbd::RgbdView::from_feature_set(
+                row,
+                cap.image.clone().unwrap_or_default(),
+                cap.base_from_flange.to_isometry("T_base_flange")?,
+                set,
+            )
+            .with_context(|| format!("robot '{robot}' capture {index}: features"))?;
+            views.push(view);
+        }
+        Ok((views, rejected))
+    }
 }
 
 #[cfg(test)]
@@ -272,6 +309,7 @@ mod tests {
             }),
             rejected: None,
             base_from_target: None,
+            features: None,
         }
     }
 

@@ -11,7 +11,13 @@ use std::time::{Duration, Instant};
 use b2b_protocol::CalibrationResult;
 
 fn dataset() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
+    dataset_named("sim-checkerboard-2x12")
+}
+
+fn dataset_named(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../datasets")
+        .join(name)
 }
 
 fn free_port() -> u16 {
@@ -55,8 +61,19 @@ fn net() -> Net {
 }
 
 fn coordinator(net: &Net) -> Child {
+    coordinator_with(net, "board")
+}
+
+fn coordinator_with(net: &Net, method: &str) -> Child {
     Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+        .args([
+            "run",
+            "--method",
+            method,
+            "--robots",
+            "robot1,robot2",
+            "--zenoh",
+        ])
         .arg(&net.coordinator_cfg)
         .arg("--state-dir")
         .arg(net.dir.path().join("coordinator-state"))
@@ -69,9 +86,13 @@ fn coordinator(net: &Net) -> Child {
 }
 
 fn agent(net: &Net, robot: &str, pace_ms: u64) -> Child {
+    agent_on(net, &dataset(), robot, pace_ms)
+}
+
+fn agent_on(net: &Net, dataset: &Path, robot: &str, pace_ms: u64) -> Child {
     Command::new(env!("CARGO_BIN_EXE_agent"))
         .args(["run", "--quiet", "--robot", robot, "--replay"])
-        .arg(dataset())
+        .arg(dataset)
         .arg("--zenoh")
         .arg(&net.agent_cfg)
         .arg("--state-dir")
@@ -104,10 +125,14 @@ fn wait(child: &mut Child, what: &str, limit: Duration) {
 }
 
 fn offline_result(dir: &Path) -> CalibrationResult {
+    offline_result_of(dir, &dataset(), "board")
+}
+
+fn offline_result_of(dir: &Path, dataset: &Path, method: &str) -> CalibrationResult {
     let out = dir.join("OFFLINE.json");
     let status = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["calibrate", "--dataset"])
-        .arg(dataset())
+        .args(["calibrate", "--method", method, "--dataset"])
+        .arg(dataset)
         .arg("--out")
         .arg(&out)
         .stdout(Stdio::null())
@@ -148,6 +173,38 @@ fn live_run_over_zenoh_matches_the_offline_calibration() {
     // Both agents' ROS and OpenCV outputs are written beside the result.
     assert!(net.dir.path().join("RESULT.ros.yaml").exists());
     assert!(net.dir.path().join("RESULT.opencv.yml").exists());
+}
+
+/// The RGB-D method live: each agent detects SIFT features in its colour images,
+/// lifts them with its depth images and publishes them; the coordinator matches
+/// across the robots and gives the offline `calibrate --method rgbd` result.
+#[test]
+fn live_rgbd_run_matches_the_offline_rgbd_calibration() {
+    let net = net();
+    let data = dataset_named("sim-rgbd-boxes-2x5");
+    let mut c = coordinator_with(&net, "rgbd");
+    let mut a1 = agent_on(&net, &data, "robot1", 0);
+    let mut a2 = agent_on(&net, &data, "robot2", 0);
+    wait(&mut c, "coordinator", Duration::from_secs(120));
+    wait(&mut a1, "agent robot1", Duration::from_secs(60));
+    wait(&mut a2, "agent robot2", Duration::from_secs(60));
+    let live = read_result(&net);
+    let offline = offline_result_of(net.dir.path(), &data, "rgbd");
+    assert_eq!(live.method, "rgbd");
+    assert_same(&live, &offline);
+    for i in 0..6 {
+        for j in 0..6 {
+            let (a, b) = (live.covariance[i][j], offline.covariance[i][j]);
+            assert!(
+                (a - b).abs() <= 1e-9 * b.abs().max(1e-12),
+                "covariance {i},{j}: {a} vs {b}"
+            );
+        }
+    }
+    assert_eq!(
+        live.captures.rejected.len(),
+        offline.captures.rejected.len()
+    );
 }
 
 #[test]

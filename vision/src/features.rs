@@ -106,6 +106,105 @@ impl Features {
     pub fn is_empty(&self) -> bool {
         self.pixels.is_empty()
     }
+
+    /// The descriptors as bytes for the wire: `(bytes per descriptor, rows)`.
+    /// Binary descriptors (AKAZE, ORB) are bytes already; SIFT's are floats that
+    /// OpenCV saturates to whole numbers 0..=255, so one byte each holds them
+    /// exactly. A SIFT value that is not such a number is an error, never rounded.
+    pub fn descriptor_bytes(&self) -> Result<(usize, Vec<u8>), VisionError> {
+        let rows = self.descriptors.rows().max(0) as usize;
+        if rows == 0 {
+            return Ok((0, Vec::new()));
+        }
+        let cols = self.descriptors.cols().max(0) as usize;
+        // A clone is continuous, whatever the original's layout.
+        let mat = self.descriptors.try_clone().cv("Mat::clone")?;
+        match self.kind {
+            FeatureKind::Sift => {
+                let data = mat.data_typed::<f32>().cv("Mat::data_typed")?;
+                let mut out = Vec::with_capacity(data.len());
+                for (i, v) in data.iter().enumerate() {
+                    if !(v.fract() == 0.0 && (0.0..=255.0).contains(v)) {
+                        return Err(VisionError::InvalidSpec(format!(
+                            "SIFT descriptor {} value {} is {v}: not a whole number in 0..=255",
+                            i / cols.max(1),
+                            i % cols.max(1)
+                        )));
+                    }
+                    out.push(*v as u8);
+                }
+                Ok((cols, out))
+            }
+            FeatureKind::Akaze | FeatureKind::Orb => {
+                let data = mat.data_typed::<u8>().cv("Mat::data_typed")?;
+                Ok((cols, data.to_vec()))
+            }
+        }
+    }
+
+    /// Features from their parts as [`Features::descriptor_bytes`] gives them
+    /// (another process's, off the wire). Lengths must agree.
+    pub fn from_parts(
+        kind: FeatureKind,
+        pixels: Vec<Point2<f64>>,
+        responses: Vec<f64>,
+        descriptor_len: usize,
+        descriptors: &[u8],
+    ) -> Result<Features, VisionError> {
+        let n = pixels.len();
+        if responses.len() != n {
+            return Err(VisionError::InvalidSpec(format!(
+                "{n} keypoints but {} responses",
+                responses.len()
+            )));
+        }
+        if descriptors.len() != n * descriptor_len || (n > 0 && descriptor_len == 0) {
+            return Err(VisionError::InvalidSpec(format!(
+                "{n} keypoints of {descriptor_len}-byte descriptors need {} bytes, got {}",
+                n * descriptor_len,
+                descriptors.len()
+            )));
+        }
+        if let Some(i) = pixels
+            .iter()
+            .position(|p| !(p.x.is_finite() && p.y.is_finite()))
+        {
+            return Err(VisionError::InvalidSpec(format!(
+                "keypoint {i} is not finite"
+            )));
+        }
+        if n > 0 && kind == FeatureKind::Sift && descriptor_len != 128 {
+            return Err(VisionError::InvalidSpec(format!(
+                "sift descriptors have 128 values, got {descriptor_len}"
+            )));
+        }
+        let descriptors = if n == 0 {
+            Mat::default()
+        } else {
+            let (rows, cols) = (n as i32, descriptor_len as i32);
+            match kind {
+                FeatureKind::Sift => {
+                    let floats: Vec<f32> = descriptors.iter().map(|b| f32::from(*b)).collect();
+                    Mat::new_rows_cols_with_data(rows, cols, &floats)
+                        .cv("Mat::from_slice")?
+                        .try_clone()
+                        .cv("Mat::clone")?
+                }
+                FeatureKind::Akaze | FeatureKind::Orb => {
+                    Mat::new_rows_cols_with_data(rows, cols, descriptors)
+                        .cv("Mat::from_slice")?
+                        .try_clone()
+                        .cv("Mat::clone")?
+                }
+            }
+        };
+        Ok(Features {
+            kind,
+            pixels,
+            responses,
+            descriptors,
+        })
+    }
 }
 
 /// One match: the pixel in each image, the descriptor distance, and the ratio of

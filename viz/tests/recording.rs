@@ -57,6 +57,7 @@ fn capture(index: u64, rejected: bool) -> Capture {
         observation: (!rejected).then_some(observation),
         rejected: rejected.then(|| "board not found".to_owned()),
         base_from_target: None,
+        features: None,
     }
 }
 

@@ -54,6 +54,11 @@ enum Command {
         /// Milliseconds between replayed captures.
         #[arg(long, default_value_t = 0)]
         pace_ms: u64,
+        /// Local features for the coordinator's RGB-D method, lifted with each
+        /// capture's depth image and published with it: sift, akaze, orb or none
+        /// (captures without depth never carry features).
+        #[arg(long, default_value = "sift")]
+        features: String,
         /// Seconds to wait for the coordinator's result after the last capture.
         #[arg(long, default_value_t = 600)]
         wait_result_s: u64,
@@ -276,11 +281,16 @@ fn main() -> std::process::ExitCode {
             zenoh,
             state_dir,
             pace_ms,
+            features,
             wait_result_s,
             quiet,
             live,
             rerun,
         } => {
+            let features = match features.as_str() {
+                "none" => None,
+                kind => Some(b2b_vision::features::FeatureKind::parse(kind)?),
+            };
             let recorder = Arc::new(rerun.recorder(&format!("b2b-agent-{robot}"))?);
             let outcome = (|| {
                 if sim.is_some() || fri.is_some() {
@@ -318,6 +328,7 @@ fn main() -> std::process::ExitCode {
                     wait_result: Duration::from_secs(wait_result_s),
                     progress: !quiet,
                     rerun: Arc::clone(&recorder),
+                    features,
                 };
                 let result = b2b_services::agent::run_replay(&opts, &stop)?;
                 print_result(&robot, result, wait_result_s)

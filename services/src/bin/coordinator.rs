@@ -31,7 +31,8 @@ enum Command {
     /// compute base1_from_base2, publish it and write RESULT.json (Ctrl-C: compute
     /// with what has arrived).
     Run {
-        /// board or multimarker (rgbd is not available live yet).
+        /// board, multimarker or rgbd (rgbd: the agents publish features with
+        /// `agent run --features`, and their board observations give the hand-eyes).
         #[arg(long, default_value = "board")]
         method: String,
         /// zenoh configuration file (JSON5); default: loopback peer listening on
@@ -60,6 +61,11 @@ enum Command {
         /// board, multimarker or rgbd (default: from the dataset's target kind).
         #[arg(long)]
         method: Option<String>,
+        /// rgbd only: each robot's HANDEYE.json (`agent handeye`, from an earlier
+        /// calibration; matched by its robot id) instead of a hand-eye from the
+        /// dataset's target: the base-to-base step then needs no target at all.
+        #[arg(long = "hand-eye")]
+        hand_eye: Vec<PathBuf>,
         /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
         #[arg(long)]
         out: PathBuf,
@@ -107,6 +113,71 @@ enum Command {
     },
 }
 
+/// The RGB-D method with hand-eyes read from HANDEYE.json files, one per robot of
+/// the dataset.
+fn rgbd_with_hand_eye_files(
+    ds: &b2b_dataset::Dataset,
+    files: &[PathBuf],
+) -> anyhow::Result<CalibrationResult> {
+    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
+    anyhow::ensure!(
+        ids.len() == 2,
+        "base-to-base needs two robots, the dataset lists {}",
+        ids.len()
+    );
+    let mut found: Vec<Option<(nalgebra::Isometry3<f64>, nalgebra::Matrix6<f64>)>> =
+        vec![None, None];
+    for path in files {
+        let he: b2b_protocol::HandEyeResult = read_json(path)?;
+        anyhow::ensure!(
+            he.format == b2b_protocol::HANDEYE_FORMAT,
+            "{}: format '{}', expected '{}'",
+            path.display(),
+            he.format,
+            b2b_protocol::HANDEYE_FORMAT
+        );
+        let k = ids.iter().position(|id| *id == he.robot).with_context(|| {
+            format!(
+                "{}: robot '{}' is not in the dataset ({})",
+                path.display(),
+                he.robot,
+                ids.join(", ")
+            )
+        })?;
+        anyhow::ensure!(
+            found[k].is_none(),
+            "{}: a second hand-eye for robot '{}'",
+            path.display(),
+            he.robot
+        );
+        let x = he
+            .flange_from_camera
+            .to_isometry("T_flange_camera")
+            .with_context(|| path.display().to_string())?;
+        let cov = nalgebra::Matrix6::from_fn(|i, j| he.covariance[i][j]);
+        anyhow::ensure!(
+            cov.iter().all(|v| v.is_finite()),
+            "{}: covariance has a non-finite entry",
+            path.display()
+        );
+        found[k] = Some((x, cov));
+    }
+    let (Some(a), Some(b)) = (found[0], found[1]) else {
+        anyhow::bail!(
+            "--hand-eye: need one HANDEYE.json for each of {} and {}",
+            ids[0],
+            ids[1]
+        );
+    };
+    let run = b2b_pipeline::rgbd::rgbd_base_to_base_with_hand_eyes(
+        ds,
+        [a.0, b.0],
+        Some([a.1, b.1]),
+        &b2b_pipeline::rgbd::RgbdOptions::default(),
+    )?;
+    Ok(run.result)
+}
+
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
@@ -122,10 +193,6 @@ fn main() -> std::process::ExitCode {
         } => {
             let recorder = rerun.recorder("b2b-coordinator")?;
             let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
-            anyhow::ensure!(
-                method != B2bMethod::Rgbd,
-                "method rgbd is not available live yet (board or multimarker)"
-            );
             let stop = stop_flag();
             let opts = b2b_services::coordinator::RunOptions {
                 zenoh,
@@ -134,6 +201,7 @@ fn main() -> std::process::ExitCode {
                 order: robots.clone(),
                 refine: noise.options()?,
                 method,
+                rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
             };
             let (result, counters) = b2b_services::coordinator::run(&opts, &stop)?;
             write_result(&out, &result).context("writing the result")?;
@@ -150,6 +218,7 @@ fn main() -> std::process::ExitCode {
         Command::Calibrate {
             dataset,
             method,
+            hand_eye,
             out,
             noise,
             rerun,
@@ -160,7 +229,16 @@ fn main() -> std::process::ExitCode {
                 Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
-            let result = base_to_base(&ds, method, &noise.options()?)?;
+            let result = if hand_eye.is_empty() {
+                base_to_base(&ds, method, &noise.options()?)?
+            } else {
+                anyhow::ensure!(
+                    method == B2bMethod::Rgbd,
+                    "--hand-eye is for --method rgbd (the {} method estimates the hand-eyes from its target)",
+                    method.name()
+                );
+                rgbd_with_hand_eye_files(&ds, &hand_eye)?
+            };
             write_result(&out, &result).context("writing the result")?;
             let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
             log_result(&recorder, &result, Some(&order));
