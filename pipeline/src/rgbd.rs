@@ -158,6 +158,9 @@ impl RgbdView {
     }
 }
 
+/// Each keypoint in the camera frame, `None` where its depth is not usable.
+pub type LiftedPoints = Vec<Option<Point3<f64>>>;
+
 /// Lifts every keypoint ([`lift_pixel`]); `None` where the depth is not usable.
 pub fn lift_features(
     camera: &CameraModel,
@@ -165,7 +168,7 @@ pub fn lift_features(
     depth: &DepthImage,
     unit_m: f64,
     options: &RgbdOptions,
-) -> Vec<Option<Point3<f64>>> {
+) -> LiftedPoints {
     features
         .pixels
         .iter()
@@ -181,7 +184,7 @@ pub fn detect_and_lift(
     depth: &DepthImage,
     unit_m: f64,
     options: &RgbdOptions,
-) -> Result<(Features, Vec<Option<Point3<f64>>>), PipelineError> {
+) -> Result<(Features, LiftedPoints), PipelineError> {
     if (depth.width, depth.height) != (camera.width, camera.height) {
         return Err(PipelineError::Invalid(format!(
             "depth image is {}x{}, the colour camera {}x{} (depth must be aligned to colour)",

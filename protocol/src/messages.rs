@@ -449,6 +449,55 @@ mod tests {
         assert!(Envelope::new("robot1", 1, c).validate("robot1").is_err());
     }
 
+    fn features() -> FeatureSet {
+        FeatureSet {
+            kind: "sift".into(),
+            pixels: vec![[10.5, 20.25], [30.0, 40.0]],
+            responses: vec![0.02, 0.03],
+            points_camera: vec![Some([0.01, -0.02, 0.5]), None],
+            descriptor_len: 3,
+            descriptors: vec![0, 255, 7, 1, 2, 3],
+        }
+    }
+
+    #[test]
+    fn features_round_trip_as_base64_and_bad_ones_are_named() {
+        let mut c = capture();
+        c.features = Some(features());
+        let env = Envelope::new("robot1", 2, c);
+        let json = serde_json::to_string(&env).unwrap();
+        assert!(json.contains(r#""descriptors":"AP8HAQID""#), "{json}");
+        let back: Envelope<Capture> = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, env);
+        back.validate("robot1").unwrap();
+        let broken = json.replace("AP8HAQID", "AP8H!QID");
+        let err = serde_json::from_str::<Envelope<Capture>>(&broken)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("not base64"), "{err}");
+        let check = |f: FeatureSet, what: &str| {
+            let mut c = capture();
+            c.features = Some(f);
+            let err = c.validate().unwrap_err().to_string();
+            assert!(err.contains(what), "{err} lacks {what}");
+        };
+        let mut f = features();
+        f.kind = "surf".into();
+        check(f, "surf");
+        let mut f = features();
+        f.descriptors.pop();
+        check(f, "need 6 bytes, got 5");
+        let mut f = features();
+        f.points_camera.pop();
+        check(f, "1 points");
+        let mut f = features();
+        f.points_camera[0] = Some([0.0, 0.0, -0.1]);
+        check(f, "points_camera[0]");
+        let mut f = features();
+        f.pixels[1][0] = f64::INFINITY;
+        check(f, "features.pixels");
+    }
+
     #[test]
     fn robot_ids_must_be_key_safe() {
         assert!(validate_robot_id("robot-1_a").is_ok());

@@ -5,7 +5,8 @@ use std::path::{Path, PathBuf};
 
 use b2b_vision::GrayImage;
 use b2b_vision::features::{
-    FeatureKind, FeatureOptions, detect_features, load_depth, match_features, match_images,
+    FeatureKind, FeatureOptions, Features, detect_features, load_depth, match_features,
+    match_images,
 };
 
 /// A deterministic blocky texture (like the simulator's boxes), `w x h`.
@@ -231,4 +232,56 @@ fn max_features_truncates_consistently() {
             f.len()
         );
     }
+}
+
+/// Features cross a process boundary as bytes: for every kind, the rebuilt features
+/// match exactly as the originals (SIFT's float descriptors are whole numbers
+/// 0..=255, so one byte each holds them); inconsistent parts are refused with the
+/// counts.
+#[test]
+fn features_round_trip_through_bytes() {
+    let a = b2b_vision::load_gray(&dataset_image("robot1", 0)).unwrap();
+    let b = b2b_vision::load_gray(&dataset_image("robot2", 0)).unwrap();
+    for kind in [FeatureKind::Sift, FeatureKind::Akaze, FeatureKind::Orb] {
+        let opts = FeatureOptions {
+            kind,
+            ..FeatureOptions::default()
+        };
+        let fa = detect_features(&a, &opts).unwrap();
+        let fb = detect_features(&b, &opts).unwrap();
+        let (len, bytes) = fa.descriptor_bytes().unwrap();
+        assert_eq!(bytes.len(), len * fa.len());
+        let back = Features::from_parts(kind, fa.pixels.clone(), fa.responses.clone(), len, &bytes)
+            .unwrap();
+        assert_eq!(back.descriptor_bytes().unwrap(), (len, bytes.clone()));
+        let direct = match_features(&fa, &fb, &opts).unwrap();
+        let rebuilt = match_features(&back, &fb, &opts).unwrap();
+        assert_eq!(direct, rebuilt, "{}", kind.name());
+        assert!(!direct.is_empty());
+        // Wrong sizes name the counts.
+        let err = Features::from_parts(
+            kind,
+            fa.pixels.clone(),
+            fa.responses.clone(),
+            len,
+            &bytes[1..],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("bytes"), "{err}");
+        let err = Features::from_parts(kind, fa.pixels.clone(), vec![], len, &bytes)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("responses"), "{err}");
+    }
+    let err = Features::from_parts(
+        FeatureKind::Sift,
+        vec![nalgebra::Point2::new(1.0, 2.0)],
+        vec![0.1],
+        64,
+        &[0u8; 64],
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("128"), "{err}");
 }
