@@ -34,6 +34,9 @@ pub struct LiveFrame {
     pub timestamp_ns: u64,
     pub camera: CameraModel,
     pub grey: Vec<u8>,
+    /// The aligned depth image of the same frame number and its unit (m), when the
+    /// source has a depth stream and it arrived.
+    pub depth: Option<(b2b_vision::features::DepthImage, f64)>,
 }
 
 /// Frames from the camera process.
@@ -176,6 +179,9 @@ pub struct LiveConfig {
     pub still_tol_rad: f64,
     pub settle_timeout: Duration,
     pub frame_timeout: Duration,
+    /// Local features lifted with the depth frame, published with each capture for
+    /// the RGB-D method (`None`: not computed; frames without depth carry none).
+    pub features: Option<b2b_pipeline::rgbd::RgbdOptions>,
 }
 
 /// Compute and motion time of the routine, per capture.
@@ -464,6 +470,16 @@ impl LiveSource {
                     .observe(&self.cfg.robot, &frame, base_from_flange, row);
             self.timings.detect_ms += ms(detect_started.elapsed());
             let decide_started = Instant::now();
+            let features = match (&self.cfg.features, &frame.depth) {
+                (Some(options), Some((depth, unit))) => {
+                    let started = Instant::now();
+                    let set = frame_features(&frame, depth, *unit, options);
+                    self.timings.detect_ms += ms(started.elapsed());
+                    set.map_err(|e| tracing::warn!("frame {}: no features: {e:#}", frame.number))
+                        .ok()
+                }
+                _ => None,
+            };
             let capture = |observed| SourceCapture {
                 index: row as u64 - 1,
                 image: Some(format!("frame {}", frame.number)),
@@ -472,7 +488,7 @@ impl LiveSource {
                 camera: camera.clone(),
                 observed,
                 pixels: Some(frame.grey.clone()),
-                features: None,
+                features: features.clone(),
             };
             let Some(a) = &auto else {
                 self.timings.decide_ms += ms(decide_started.elapsed());
@@ -725,9 +741,36 @@ impl CaptureSource for LiveSource {
     }
 }
 
-/// Grey frames from the camera process's iceoryx2 colour service.
+/// The RGB-D method's features of a frame (detected in the grey image, lifted with
+/// the depth of the same frame number).
+fn frame_features(
+    frame: &LiveFrame,
+    depth: &b2b_vision::features::DepthImage,
+    unit_m: f64,
+    options: &b2b_pipeline::rgbd::RgbdOptions,
+) -> anyhow::Result<b2b_protocol::messages::FeatureSet> {
+    let gray =
+        b2b_vision::GrayImage::from_raw(frame.camera.width, frame.camera.height, &frame.grey)?;
+    let (features, points) =
+        b2b_pipeline::rgbd::detect_and_lift(&frame.camera, &gray, depth, unit_m, options)?;
+    let view = b2b_pipeline::rgbd::RgbdView {
+        row: 0,
+        image: String::new(),
+        base_from_flange: Iso3::identity(),
+        features,
+        points,
+    };
+    Ok(view.to_feature_set()?)
+}
+
+/// Grey frames from the camera process's iceoryx2 colour service (and, when asked
+/// for, the depth frames of the same numbers).
 pub struct IceoryxFrames {
     subscriber: b2b_frames::FrameSubscriber,
+    depth: Option<b2b_frames::FrameSubscriber>,
+    /// A depth frame has arrived at least once (until then a camera without a
+    /// depth stream is not waited for long).
+    depth_seen: bool,
 }
 
 impl std::fmt::Debug for IceoryxFrames {
@@ -742,7 +785,78 @@ impl IceoryxFrames {
         let name = b2b_frames::service_name_in(prefix, robot, b2b_frames::Stream::Colour);
         Ok(IceoryxFrames {
             subscriber: b2b_frames::FrameSubscriber::new(&name)?,
+            depth: None,
+            depth_seen: false,
         })
+    }
+
+    /// Also subscribes to `robot`'s depth stream: each frame then comes with the
+    /// depth frame of the same number.
+    pub fn with_depth(mut self, prefix: &str, robot: &str) -> anyhow::Result<Self> {
+        let name = b2b_frames::service_name_in(prefix, robot, b2b_frames::Stream::Depth);
+        self.depth = Some(b2b_frames::FrameSubscriber::new(&name)?);
+        Ok(self)
+    }
+
+    /// The depth frame numbered `number`: older ones are skipped; a newer one, or
+    /// none within `timeout`, means it is missing (a warning, not an error: the
+    /// capture still has its colour frame).
+    fn depth_of(
+        &mut self,
+        number: u64,
+        timeout: Duration,
+    ) -> anyhow::Result<Option<(b2b_vision::features::DepthImage, f64)>> {
+        let Some(sub) = self.depth.as_mut() else {
+            return Ok(None);
+        };
+        let timeout = if self.depth_seen {
+            timeout
+        } else {
+            timeout.min(Duration::from_millis(300))
+        };
+        let deadline = Instant::now() + timeout;
+        while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+            let Some(frame) = sub.wait_next(left.min(Duration::from_millis(100)))? else {
+                continue;
+            };
+            let h = *frame.header();
+            self.depth_seen = true;
+            if h.frame_number < number {
+                continue;
+            }
+            if h.frame_number > number {
+                tracing::warn!(
+                    "depth frame {number} missing (next is {}): capture without depth",
+                    h.frame_number
+                );
+                return Ok(None);
+            }
+            anyhow::ensure!(
+                h.stream_kind()? == b2b_frames::StreamKind::Z16,
+                "the depth service carries {} frames",
+                h.stream_kind()?.name()
+            );
+            anyhow::ensure!(
+                h.depth_unit_m > 0.0 && h.depth_unit_m.is_finite(),
+                "depth frame {number} has no depth unit"
+            );
+            let mut data = Vec::with_capacity(h.width as usize * h.height as usize);
+            for y in 0..h.height {
+                let row = frame.row(y).context("short depth frame")?;
+                data.extend(
+                    row.chunks_exact(2)
+                        .map(|b| u16::from_le_bytes([b[0], b[1]])),
+                );
+            }
+            let depth = b2b_vision::features::DepthImage {
+                width: h.width,
+                height: h.height,
+                data,
+            };
+            return Ok(Some((depth, h.depth_unit_m)));
+        }
+        tracing::warn!("depth frame {number} did not arrive within {timeout:?}");
+        Ok(None)
     }
 }
 
@@ -773,6 +887,7 @@ fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
         timestamp_ns: h.timestamp_ns,
         camera,
         grey,
+        depth: None,
     })
 }
 
@@ -791,7 +906,10 @@ impl FrameSource for IceoryxFrames {
                 .wait_next(left.min(Duration::from_millis(200)))?
                 && frame.header().timestamp_ns >= after_ns
             {
-                return to_live(&frame);
+                let mut live = to_live(&frame)?;
+                drop(frame);
+                live.depth = self.depth_of(live.number, Duration::from_secs(2))?;
+                return Ok(live);
             }
         }
     }

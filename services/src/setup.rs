@@ -194,6 +194,7 @@ pub fn live_source(
     plan: PlanConfig,
     fri: FriClient,
     frames: Box<dyn FrameSource>,
+    features: Option<b2b_pipeline::rgbd::RgbdOptions>,
 ) -> anyhow::Result<LiveSource> {
     let target = LiveTarget::checkerboard(
         setup.target.inner_corners[0] as usize,
@@ -214,6 +215,7 @@ pub fn live_source(
         still_tol_rad: 2e-4,
         settle_timeout: Duration::from_secs(10),
         frame_timeout: Duration::from_secs(20),
+        features,
     };
     LiveSource::connect(
         cfg,

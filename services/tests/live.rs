@@ -3,12 +3,14 @@
 //! offline one, and killing an agent or the coordinator mid-run and restarting
 //! them loses nothing.
 
-use std::net::TcpListener;
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use b2b_protocol::CalibrationResult;
+use common::{Net, net};
 
 fn dataset() -> PathBuf {
     dataset_named("sim-checkerboard-2x12")
@@ -18,46 +20,6 @@ fn dataset_named(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../datasets")
         .join(name)
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-struct Net {
-    dir: tempfile::TempDir,
-    coordinator_cfg: PathBuf,
-    agent_cfg: PathBuf,
-}
-
-fn net() -> Net {
-    let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let coordinator_cfg = dir.path().join("coordinator.json5");
-    let agent_cfg = dir.path().join("agent.json5");
-    std::fs::write(
-        &coordinator_cfg,
-        format!(
-            r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
-        ),
-    )
-    .unwrap();
-    std::fs::write(
-        &agent_cfg,
-        format!(
-            r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:0"] }}, connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
-        ),
-    )
-    .unwrap();
-    Net {
-        dir,
-        coordinator_cfg,
-        agent_cfg,
-    }
 }
 
 fn coordinator(net: &Net) -> Child {

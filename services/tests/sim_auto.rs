@@ -8,7 +8,8 @@
 //! as the robot noise), and `coordinator verify` against the scene's touch pairs is
 //! within the predicted bound.
 
-use std::net::TcpListener;
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -21,50 +22,18 @@ fn dataset() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
 }
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-struct Killed(std::process::Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 #[test]
 fn two_carts_run_the_automatic_routine_to_a_verified_result() {
-    let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
-    let coordinator_cfg = dir.path().join("coordinator.json5");
-    let agent_cfg = dir.path().join("agent.json5");
-    std::fs::write(
-        &coordinator_cfg,
-        format!(
-            r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
-        ),
-    )
-    .unwrap();
-    std::fs::write(
-        &agent_cfg,
-        format!(
-            r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:0"] }}, connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
-        ),
-    )
-    .unwrap();
+    let net = common::net();
+    let dir = &net.dir;
+    let (coordinator_cfg, agent_cfg) = (&net.coordinator_cfg, &net.agent_cfg);
     let scene = dataset().join("scene.json");
     let result_file = dir.path().join("RESULT.json");
     let sigma = ["--robot-sigma-mm", "0.3", "--robot-sigma-deg", "0.015"];
-    let mut coordinator = Killed(
+    let mut coordinator = common::Killed(
         Command::new(env!("CARGO_BIN_EXE_coordinator"))
             .args(["run", "--robots", "robot1,robot2", "--zenoh"])
-            .arg(&coordinator_cfg)
+            .arg(coordinator_cfg)
             .arg("--state-dir")
             .arg(dir.path().join("coordinator-state"))
             .arg("--out")
@@ -94,7 +63,7 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             .arg(&setup_file)
             .args(["--min-good", "25", "--count", "30"])
             .arg("--zenoh")
-            .arg(&agent_cfg)
+            .arg(agent_cfg)
             .arg("--state-dir")
             .arg(dir.path().join(format!("agent-{robot}")))
             .args(["--wait-result-s", "120"])

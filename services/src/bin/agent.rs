@@ -188,6 +188,7 @@ fn connect(
     fri: Option<&str>,
     live: &LiveArgs,
     mode: b2b_services::live::LiveMode,
+    features: Option<b2b_vision::features::FeatureKind>,
 ) -> anyhow::Result<(b2b_services::live::LiveSource, Option<Child>)> {
     use b2b_services::setup::{CellSetup, Connection, fri_client, live_source};
     b2b_protocol::messages::validate_robot_id(robot)?;
@@ -229,7 +230,20 @@ fn connect(
         _ => anyhow::bail!("give a source: --sim SCENE or --fri HOST:PORT"),
     };
     let fri = fri_client(&setup, &conn)?;
-    let frames = b2b_services::live::IceoryxFrames::new(&conn.camera_prefix, robot)?;
+    let mut frames = b2b_services::live::IceoryxFrames::new(&conn.camera_prefix, robot)?;
+    let features = features.map(|kind| {
+        let mut options = b2b_pipeline::rgbd::RgbdOptions::default();
+        options.features.kind = kind;
+        options
+    });
+    // A simulated camera has depth only when its scene says so.
+    let has_depth = match &cart_scene {
+        Some(scene) => b2b_sim::scene::Scene::load(scene)?.depth.is_some(),
+        None => true,
+    };
+    if features.is_some() && has_depth {
+        frames = frames.with_depth(&conn.camera_prefix, robot)?;
+    }
     let child = match cart_scene {
         Some(scene) => {
             let exe = std::env::current_exe().context("cannot find the agent's own executable")?;
@@ -247,7 +261,7 @@ fn connect(
         }
         None => None,
     };
-    let source = live_source(&setup, robot, mode, plan, fri, Box::new(frames))?;
+    let source = live_source(&setup, robot, mode, plan, fri, Box::new(frames), features)?;
     Ok((source, child))
 }
 
@@ -301,6 +315,7 @@ fn main() -> std::process::ExitCode {
                         fri.as_deref(),
                         &live,
                         b2b_services::live::LiveMode::Program,
+                        features,
                     )?;
                     let opts = b2b_services::agent::AgentOptions {
                         robot: robot.clone(),
@@ -373,6 +388,7 @@ fn main() -> std::process::ExitCode {
                 fri.as_deref(),
                 &live,
                 b2b_services::live::LiveMode::Auto(auto),
+                None,
             )?;
             if dry_run {
                 let plan = source.plan_only()?.clone();

@@ -1,0 +1,114 @@
+//! The RGB-D method live in the simulator: two simulated carts rendering the textured
+//! boxes scene with a depth camera (colour and depth frames into iceoryx2), two
+//! `agent run --sim` processes that detect SIFT features in each still frame, lift
+//! them with the depth frame of the same number and publish them over zenoh, and
+//! `coordinator run --method rgbd`. Checks against the scene's ground truth and its
+//! touch pairs (the goal: touch error <= 5 mm; the seed's RGB-D method: 34.8).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use b2b_protocol::CalibrationResult;
+
+fn dataset() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-rgbd-boxes-2x5")
+}
+
+#[test]
+fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
+    let net = common::net();
+    let dir = net.dir.path();
+    let scene = dataset().join("scene.json");
+    let result_file = dir.join("RESULT.json");
+    let mut coordinator = common::Killed(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["run", "--method", "rgbd", "--robots", "robot1,robot2"])
+            .arg("--zenoh")
+            .arg(&net.coordinator_cfg)
+            .arg("--state-dir")
+            .arg(dir.join("coordinator-state"))
+            .arg("--out")
+            .arg(&result_file)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let mut agents = vec![];
+    for robot in ["robot1", "robot2"] {
+        let child = Command::new(env!("CARGO_BIN_EXE_agent"))
+            .args(["run", "--quiet", "--robot", robot, "--sim"])
+            .arg(&scene)
+            .args(["--count", "8", "--features", "sift"])
+            .arg("--zenoh")
+            .arg(&net.agent_cfg)
+            .arg("--state-dir")
+            .arg(dir.join(format!("agent-{robot}")))
+            .args(["--wait-result-s", "120"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        agents.push((robot, child));
+    }
+    for (robot, child) in agents {
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{robot} failed: {stderr}");
+        assert!(
+            !stderr.contains("no features"),
+            "{robot}: a capture went without features: {stderr}"
+        );
+    }
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !result_file.exists() {
+        assert!(Instant::now() < deadline, "no RESULT.json");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let _ = coordinator.0.wait();
+    let result: CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result_file).unwrap()).unwrap();
+    assert_eq!(result.method, "rgbd");
+    for robot in ["robot1", "robot2"] {
+        let used = result.captures.used.get(robot).copied().unwrap_or(0);
+        assert!(used >= 5, "{robot}: only {used} captures in accepted pairs");
+    }
+    let truth = b2b_dataset::load_ground_truth(&dataset())
+        .unwrap()
+        .unwrap()
+        .base1_from_base2
+        .unwrap();
+    let est = result.base1_from_base2.to_isometry("result").unwrap();
+    let d = truth.inverse() * est;
+    let (dt, da) = (d.translation.vector.norm(), d.rotation.angle());
+    eprintln!(
+        "live rgbd result: {:.3} mm / {:.4} deg from the truth",
+        dt * 1e3,
+        da.to_degrees()
+    );
+    assert!(dt < 3e-3 && da.to_degrees() < 0.3, "{dt} m, {da} rad");
+
+    let verify_json = dir.join("VERIFY.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["verify", "--result"])
+        .arg(&result_file)
+        .arg("--touch-points")
+        .arg(dataset().join("touch_points.csv"))
+        .arg("--json")
+        .arg(&verify_json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{}", String::from_utf8_lossy(&out.stdout));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&verify_json).unwrap()).unwrap();
+    let mean_mm = v["touch_mean_mm"].as_f64().unwrap();
+    assert!(mean_mm <= 5.0, "touch mean {mean_mm} mm");
+}
