@@ -915,6 +915,6 @@ impl FrameSource for IceoryxFrames {
     }
 
     fn dropped(&self) -> u64 {
-        self.subscriber.stats().dropped
+        self.subscriber.stats().dropped + self.depth.as_ref().map_or(0, |d| d.stats().dropped)
     }
 }

@@ -140,3 +140,88 @@ fn calibrate_then_verify_writes_conforming_files() {
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v.n, 25);
 }
+
+/// `calibrate --method rgbd --hand-eye`: hand-eyes from earlier `agent handeye` runs
+/// replace the dataset's target; the result carries them, and misuse is named.
+#[test]
+fn rgbd_with_hand_eye_files() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-rgbd-boxes-2x5");
+    let mut files = vec![];
+    for robot in ["robot1", "robot2"] {
+        let f = tmp.path().join(format!("HANDEYE-{robot}.json"));
+        let out = agent()
+            .args(["handeye", "--robot", robot, "--dataset"])
+            .arg(&ds)
+            .arg("--out")
+            .arg(&f)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        files.push(f);
+    }
+    let result = tmp.path().join("RESULT.json");
+    let out = coordinator()
+        .args(["calibrate", "--method", "rgbd", "--dataset"])
+        .arg(&ds)
+        .arg("--hand-eye")
+        .arg(&files[1])
+        .arg("--hand-eye")
+        .arg(&files[0])
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    assert_eq!(r.method, "rgbd");
+    let he: b2b_protocol::HandEyeResult =
+        serde_json::from_str(&std::fs::read_to_string(&files[0]).unwrap()).unwrap();
+    for i in 0..3 {
+        assert!((r.hand_eye["robot1"].t[i] - he.flange_from_camera.t[i]).abs() < 1e-12);
+    }
+    // One robot's file only: the missing robot is named.
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--method", "rgbd", "--dataset"])
+            .arg(&ds)
+            .arg("--hand-eye")
+            .arg(&files[0])
+            .arg("--out")
+            .arg(&result),
+        "robot2",
+    );
+    // The same robot twice.
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--method", "rgbd", "--dataset"])
+            .arg(&ds)
+            .arg("--hand-eye")
+            .arg(&files[0])
+            .arg("--hand-eye")
+            .arg(&files[0])
+            .arg("--out")
+            .arg(&result),
+        "a second hand-eye for robot 'robot1'",
+    );
+    // Hand-eye files with a target method.
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--method", "board", "--dataset"])
+            .arg(&ds)
+            .arg("--hand-eye")
+            .arg(&files[0])
+            .arg("--out")
+            .arg(&result),
+        "--hand-eye is for --method rgbd",
+    );
+}

@@ -126,25 +126,12 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
     );
     assert!(err < bound && err < 1e-3, "{err} m from the truth");
 
-    let verify_json = dir.path().join("VERIFY.json");
-    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["verify", "--result"])
-        .arg(&result_file)
-        .arg("--touch-points")
-        .arg(dataset().join("touch_points.csv"))
-        .arg("--json")
-        .arg(&verify_json)
-        .args(["--tip-sigma-mm", "0.3"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let (printout, v) = common::verify(
+        &result_file,
+        &dataset().join("touch_points.csv"),
+        &["--tip-sigma-mm", "0.3"],
     );
-    eprintln!("{}", String::from_utf8_lossy(&out.stdout));
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&verify_json).unwrap()).unwrap();
+    eprintln!("{printout}");
     let mean_mm = v["touch_mean_mm"].as_f64().unwrap();
     assert!(mean_mm < 1.5, "touch mean {mean_mm} mm");
 }

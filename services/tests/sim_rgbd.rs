@@ -91,24 +91,8 @@ fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
     );
     assert!(dt < 3e-3 && da.to_degrees() < 0.3, "{dt} m, {da} rad");
 
-    let verify_json = dir.join("VERIFY.json");
-    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["verify", "--result"])
-        .arg(&result_file)
-        .arg("--touch-points")
-        .arg(dataset().join("touch_points.csv"))
-        .arg("--json")
-        .arg(&verify_json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    eprintln!("{}", String::from_utf8_lossy(&out.stdout));
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&verify_json).unwrap()).unwrap();
+    let (printout, v) = common::verify(&result_file, &dataset().join("touch_points.csv"), &[]);
+    eprintln!("{printout}");
     let mean_mm = v["touch_mean_mm"].as_f64().unwrap();
     assert!(mean_mm <= 5.0, "touch mean {mean_mm} mm");
 }

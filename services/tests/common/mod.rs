@@ -57,3 +57,30 @@ impl Drop for Killed {
         let _ = self.0.wait();
     }
 }
+
+/// Runs `coordinator verify` on a result against touch pairs (plus `extra`
+/// arguments); asserts it succeeded and returns its printout and its JSON report.
+pub fn verify(
+    result: &std::path::Path,
+    touch_points: &std::path::Path,
+    extra: &[&str],
+) -> (String, serde_json::Value) {
+    let json = result.with_file_name("VERIFY.json");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["verify", "--result"])
+        .arg(result)
+        .arg("--touch-points")
+        .arg(touch_points)
+        .arg("--json")
+        .arg(&json)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "coordinator verify failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    (String::from_utf8_lossy(&out.stdout).into_owned(), report)
+}
