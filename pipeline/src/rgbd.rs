@@ -67,6 +67,15 @@ pub struct RgbdOptions {
     pub rotation_floor_rad: f64,
 }
 
+impl RgbdOptions {
+    /// The defaults with another feature kind.
+    pub fn with_kind(kind: FeatureKind) -> Self {
+        let mut options = RgbdOptions::default();
+        options.features.kind = kind;
+        options
+    }
+}
+
 impl Default for RgbdOptions {
     fn default() -> Self {
         RgbdOptions {
@@ -103,22 +112,26 @@ pub struct RgbdView {
     pub points: Vec<Option<Point3<f64>>>,
 }
 
+/// Features and their lifted points as an agent publishes them.
+pub fn feature_set(
+    features: &Features,
+    points: &LiftedPoints,
+) -> Result<FeatureSet, PipelineError> {
+    let (descriptor_len, descriptors) = features.descriptor_bytes()?;
+    Ok(FeatureSet {
+        kind: features.kind.name().to_owned(),
+        pixels: features.pixels.iter().map(|p| [p.x, p.y]).collect(),
+        responses: features.responses.clone(),
+        points_camera: points.iter().map(|p| p.map(|p| [p.x, p.y, p.z])).collect(),
+        descriptor_len,
+        descriptors,
+    })
+}
+
 impl RgbdView {
     /// The view as an agent publishes it.
     pub fn to_feature_set(&self) -> Result<FeatureSet, PipelineError> {
-        let (descriptor_len, descriptors) = self.features.descriptor_bytes()?;
-        Ok(FeatureSet {
-            kind: self.features.kind.name().to_owned(),
-            pixels: self.features.pixels.iter().map(|p| [p.x, p.y]).collect(),
-            responses: self.features.responses.clone(),
-            points_camera: self
-                .points
-                .iter()
-                .map(|p| p.map(|p| [p.x, p.y, p.z]))
-                .collect(),
-            descriptor_len,
-            descriptors,
-        })
+        feature_set(&self.features, &self.points)
     }
 
     /// A view from a published feature set (validated on receipt; checked again

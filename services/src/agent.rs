@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
-use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, detect_and_lift};
+use b2b_pipeline::rgbd::{RgbdOptions, detect_and_lift, feature_set};
 use b2b_pipeline::{
     HandEyeChoice, Observation, RobotObservations, RobotSetup, hand_eye, observe_capture,
 };
@@ -195,9 +195,7 @@ impl ReplaySource {
     /// Also detect features of this kind and lift them with the capture's depth
     /// image (captures without depth publish none).
     pub fn with_features(mut self, kind: b2b_vision::features::FeatureKind) -> Self {
-        let mut options = RgbdOptions::default();
-        options.features.kind = kind;
-        self.features = Some(options);
+        self.features = Some(RgbdOptions::with_kind(kind));
         self
     }
 
@@ -223,14 +221,9 @@ impl ReplaySource {
         let depth = b2b_vision::features::load_depth(&dp).map_err(|e| e.to_string())?;
         let (features, points) = detect_and_lift(&self.setup.camera, &gray, &depth, unit, options)
             .map_err(|e| format!("{}: {e}", dp.display()))?;
-        let view = RgbdView {
-            row: cap.row,
-            image: String::new(),
-            base_from_flange: cap.base_from_flange,
-            features,
-            points,
-        };
-        view.to_feature_set().map(Some).map_err(|e| e.to_string())
+        feature_set(&features, &points)
+            .map(Some)
+            .map_err(|e| e.to_string())
     }
 }
 

@@ -753,14 +753,7 @@ fn frame_features(
         b2b_vision::GrayImage::from_raw(frame.camera.width, frame.camera.height, &frame.grey)?;
     let (features, points) =
         b2b_pipeline::rgbd::detect_and_lift(&frame.camera, &gray, depth, unit_m, options)?;
-    let view = b2b_pipeline::rgbd::RgbdView {
-        row: 0,
-        image: String::new(),
-        base_from_flange: Iso3::identity(),
-        features,
-        points,
-    };
-    Ok(view.to_feature_set()?)
+    Ok(b2b_pipeline::rgbd::feature_set(&features, &points)?)
 }
 
 /// Grey frames from the camera process's iceoryx2 colour service (and, when asked

@@ -231,11 +231,7 @@ fn connect(
     };
     let fri = fri_client(&setup, &conn)?;
     let mut frames = b2b_services::live::IceoryxFrames::new(&conn.camera_prefix, robot)?;
-    let features = features.map(|kind| {
-        let mut options = b2b_pipeline::rgbd::RgbdOptions::default();
-        options.features.kind = kind;
-        options
-    });
+    let features = features.map(b2b_pipeline::rgbd::RgbdOptions::with_kind);
     // A simulated camera has depth only when its scene says so.
     let has_depth = match &cart_scene {
         Some(scene) => b2b_sim::scene::Scene::load(scene)?.depth.is_some(),
