@@ -109,7 +109,7 @@ pub struct RgbdView {
     pub features: Features,
     /// Each keypoint in the camera frame ([`lift_pixel`]); `None` where its depth
     /// is not usable.
-    pub points: Vec<Option<Point3<f64>>>,
+    pub points: LiftedPoints,
 }
 
 /// Features and their lifted points as an agent publishes them.
@@ -508,6 +508,41 @@ pub fn combine_pairs(
     })
 }
 
+/// One dataset capture as a view: its colour image's features lifted with its depth
+/// image (what `load_views` does per row and a replaying agent per capture).
+pub fn capture_view(
+    ds: &Dataset,
+    robot: &str,
+    camera: &CameraModel,
+    unit_m: f64,
+    cap: &b2b_dataset::Capture,
+    options: &RgbdOptions,
+) -> Result<RgbdView, PipelineError> {
+    let (Some(ip), Some(dp)) = (ds.image_path(robot, cap), ds.depth_path(robot, cap)) else {
+        return Err(PipelineError::Invalid(
+            "rgbd needs both a colour and a depth image".into(),
+        ));
+    };
+    let gray = b2b_vision::load_gray(&ip)?;
+    let depth = load_depth(&dp)?;
+    let (features, points) =
+        detect_and_lift(camera, &gray, &depth, unit_m, options).map_err(|e| match e {
+            PipelineError::Invalid(m) => PipelineError::Invalid(format!("{}: {m}", dp.display())),
+            other => other,
+        })?;
+    Ok(RgbdView {
+        row: cap.row,
+        image: cap
+            .image
+            .as_ref()
+            .map(|p| p.display().to_string())
+            .unwrap_or_default(),
+        base_from_flange: cap.base_from_flange,
+        features,
+        points,
+    })
+}
+
 /// Loads one robot's colour features and depth, capture by capture; captures without
 /// depth or with unreadable files become rejected captures.
 pub fn load_views(
@@ -538,21 +573,7 @@ pub fn load_views(
             row: Some(cap.row),
             reason,
         };
-        let (Some(ip), Some(dp)) = (ds.image_path(robot, cap), ds.depth_path(robot, cap)) else {
-            rejected.push(reject("rgbd needs both a colour and a depth image".into()));
-            continue;
-        };
-        let loaded = b2b_vision::load_gray(&ip)
-            .map_err(PipelineError::from)
-            .and_then(|g| Ok((g, load_depth(&dp)?)))
-            .and_then(|(g, depth)| detect_and_lift(&camera, &g, &depth, unit, options))
-            .map(|(features, points)| RgbdView {
-                row: cap.row,
-                image: image.clone().unwrap_or_default(),
-                base_from_flange: cap.base_from_flange,
-                features,
-                points,
-            });
+        let loaded = capture_view(ds, robot, &camera, unit, cap, options);
         match loaded {
             Ok(view) => views.push(view),
             Err(e) => rejected.push(reject(e.to_string())),

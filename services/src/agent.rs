@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
-use b2b_pipeline::rgbd::{RgbdOptions, detect_and_lift, feature_set};
+use b2b_pipeline::rgbd::{RgbdOptions, capture_view};
 use b2b_pipeline::{
     HandEyeChoice, Observation, RobotObservations, RobotSetup, hand_eye, observe_capture,
 };
@@ -211,19 +211,12 @@ impl ReplaySource {
         let Some(unit) = self.ds.robot_manifest(robot).and_then(|m| m.depth_unit_m) else {
             return Ok(None);
         };
-        let (Some(ip), Some(dp)) = (
-            self.ds.image_path(robot, cap),
-            self.ds.depth_path(robot, cap),
-        ) else {
+        if self.ds.depth_path(robot, cap).is_none() {
             return Ok(None);
-        };
-        let gray = b2b_vision::load_gray(&ip).map_err(|e| e.to_string())?;
-        let depth = b2b_vision::features::load_depth(&dp).map_err(|e| e.to_string())?;
-        let (features, points) = detect_and_lift(&self.setup.camera, &gray, &depth, unit, options)
-            .map_err(|e| format!("{}: {e}", dp.display()))?;
-        feature_set(&features, &points)
-            .map(Some)
-            .map_err(|e| e.to_string())
+        }
+        let view = capture_view(&self.ds, robot, &self.setup.camera, unit, cap, options)
+            .map_err(|e| e.to_string())?;
+        view.to_feature_set().map(Some).map_err(|e| e.to_string())
     }
 }
 

@@ -165,17 +165,17 @@ fn rgbd_with_hand_eye_files() {
         files.push(f);
     }
     let result = tmp.path().join("RESULT.json");
-    let out = coordinator()
-        .args(["calibrate", "--method", "rgbd", "--dataset"])
-        .arg(&ds)
-        .arg("--hand-eye")
-        .arg(&files[1])
-        .arg("--hand-eye")
-        .arg(&files[0])
-        .arg("--out")
-        .arg(&result)
-        .output()
-        .unwrap();
+    let calibrate = |method: &str, hand_eyes: &[&std::path::PathBuf]| {
+        let mut cmd = coordinator();
+        cmd.args(["calibrate", "--method", method, "--dataset"])
+            .arg(&ds);
+        for f in hand_eyes {
+            cmd.arg("--hand-eye").arg(f);
+        }
+        cmd.arg("--out").arg(&result);
+        cmd
+    };
+    let out = calibrate("rgbd", &[&files[1], &files[0]]).output().unwrap();
     assert!(
         out.status.success(),
         "{}",
@@ -190,38 +190,15 @@ fn rgbd_with_hand_eye_files() {
         assert!((r.hand_eye["robot1"].t[i] - he.flange_from_camera.t[i]).abs() < 1e-12);
     }
     // One robot's file only: the missing robot is named.
-    fails_cleanly(
-        coordinator()
-            .args(["calibrate", "--method", "rgbd", "--dataset"])
-            .arg(&ds)
-            .arg("--hand-eye")
-            .arg(&files[0])
-            .arg("--out")
-            .arg(&result),
-        "robot2",
-    );
+    fails_cleanly(&mut calibrate("rgbd", &[&files[0]]), "robot2");
     // The same robot twice.
     fails_cleanly(
-        coordinator()
-            .args(["calibrate", "--method", "rgbd", "--dataset"])
-            .arg(&ds)
-            .arg("--hand-eye")
-            .arg(&files[0])
-            .arg("--hand-eye")
-            .arg(&files[0])
-            .arg("--out")
-            .arg(&result),
+        &mut calibrate("rgbd", &[&files[0], &files[0]]),
         "a second hand-eye for robot 'robot1'",
     );
     // Hand-eye files with a target method.
     fails_cleanly(
-        coordinator()
-            .args(["calibrate", "--method", "board", "--dataset"])
-            .arg(&ds)
-            .arg("--hand-eye")
-            .arg(&files[0])
-            .arg("--out")
-            .arg(&result),
+        &mut calibrate("board", &[&files[0]]),
         "--hand-eye is for --method rgbd",
     );
 }

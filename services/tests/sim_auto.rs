@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use b2b_protocol::{CalibrationResult, Pose};
+use b2b_protocol::Pose;
 use b2b_services::setup::CellSetup;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -100,24 +100,16 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             "{robot}: the off-centre board was never re-centred: {summary}"
         );
     }
-    while !result_file.exists() {
-        assert!(Instant::now() < deadline, "no RESULT.json");
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    let _ = coordinator.0.wait();
-    let result: CalibrationResult =
-        serde_json::from_str(&std::fs::read_to_string(&result_file).unwrap()).unwrap();
+    let result = common::wait_for_result(
+        &result_file,
+        &mut coordinator,
+        deadline.saturating_duration_since(Instant::now()),
+    );
     for robot in ["robot1", "robot2"] {
         let used = result.captures.used.get(robot).copied().unwrap_or(0);
         assert!(used >= 25, "{robot}: only {used} good captures");
     }
-    let truth = b2b_dataset::load_ground_truth(&dataset())
-        .unwrap()
-        .unwrap()
-        .base1_from_base2
-        .unwrap();
-    let est = result.base1_from_base2.to_isometry("result").unwrap();
-    let err = (truth.translation.vector - est.translation.vector).norm();
+    let (err, _) = common::truth_error(&dataset(), &result);
     let bound = 3.0 * result.predicted_touch_error_m.p95.max(2e-4);
     eprintln!(
         "live auto result: {:.3} mm from the truth; predicted touch error p95 {:.3} mm",

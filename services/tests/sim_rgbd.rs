@@ -9,9 +9,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
-
-use b2b_protocol::CalibrationResult;
+use std::time::Duration;
 
 fn dataset() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-rgbd-boxes-2x5")
@@ -63,27 +61,13 @@ fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
             "{robot}: a capture went without features: {stderr}"
         );
     }
-    let deadline = Instant::now() + Duration::from_secs(120);
-    while !result_file.exists() {
-        assert!(Instant::now() < deadline, "no RESULT.json");
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    let _ = coordinator.0.wait();
-    let result: CalibrationResult =
-        serde_json::from_str(&std::fs::read_to_string(&result_file).unwrap()).unwrap();
+    let result = common::wait_for_result(&result_file, &mut coordinator, Duration::from_secs(120));
     assert_eq!(result.method, "rgbd");
     for robot in ["robot1", "robot2"] {
         let used = result.captures.used.get(robot).copied().unwrap_or(0);
         assert!(used >= 5, "{robot}: only {used} captures in accepted pairs");
     }
-    let truth = b2b_dataset::load_ground_truth(&dataset())
-        .unwrap()
-        .unwrap()
-        .base1_from_base2
-        .unwrap();
-    let est = result.base1_from_base2.to_isometry("result").unwrap();
-    let d = truth.inverse() * est;
-    let (dt, da) = (d.translation.vector.norm(), d.rotation.angle());
+    let (dt, da) = common::truth_error(&dataset(), &result);
     eprintln!(
         "live rgbd result: {:.3} mm / {:.4} deg from the truth",
         dt * 1e3,

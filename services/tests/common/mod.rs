@@ -84,3 +84,35 @@ pub fn verify(
     let report = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     (String::from_utf8_lossy(&out.stdout).into_owned(), report)
 }
+
+/// Waits for the coordinator to write `result_file` (within `limit`), lets the
+/// process end, and reads the result.
+pub fn wait_for_result(
+    result_file: &std::path::Path,
+    coordinator: &mut Killed,
+    limit: std::time::Duration,
+) -> b2b_protocol::CalibrationResult {
+    let deadline = std::time::Instant::now() + limit;
+    while !result_file.exists() {
+        assert!(std::time::Instant::now() < deadline, "no RESULT.json");
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    let _ = coordinator.0.wait();
+    serde_json::from_str(&std::fs::read_to_string(result_file).unwrap()).unwrap()
+}
+
+/// A result's distance from the dataset's ground truth: translation (m) and
+/// rotation angle (rad).
+pub fn truth_error(
+    dataset: &std::path::Path,
+    result: &b2b_protocol::CalibrationResult,
+) -> (f64, f64) {
+    let truth = b2b_dataset::load_ground_truth(dataset)
+        .unwrap()
+        .unwrap()
+        .base1_from_base2
+        .unwrap();
+    let est = result.base1_from_base2.to_isometry("result").unwrap();
+    let d = truth.inverse() * est;
+    (d.translation.vector.norm(), d.rotation.angle())
+}
