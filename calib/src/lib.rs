@@ -22,6 +22,7 @@
 pub mod base_to_base;
 pub mod camera;
 pub mod degeneracy;
+pub mod estimate;
 pub mod handeye;
 pub mod metrics;
 pub mod pose;

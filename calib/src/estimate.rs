@@ -1,0 +1,540 @@
+//! The default estimator: what `coordinator calibrate` and `agent handeye` run.
+//!
+//! 1. A seed by Park–Martin's closed form, screened for gross rows: every
+//!    capture puts the board somewhere in the base (`base_from_flange *
+//!    flange_from_camera * camera_from_target`); a capture that puts it far from
+//!    where the others agree it is (a typo, a wrong row) is left out with the
+//!    distance as its reason, and the seed is solved again without it. A
+//!    closed form has no defence against such a row: one row with tx off by
+//!    65 cm moves Park's hand-eye by centimetres.
+//! 2. The joint reprojection refinement of each robot ([`crate::refine`]), which
+//!    estimates the robots' noise from the residuals and leaves out captures
+//!    whose pose disagrees with the rest far beyond that noise.
+//! 3. For two robots, both as one problem ([`crate::base_to_base`]).
+//!
+//! Every capture left out keeps its index and reason, so the caller can name it.
+
+use nalgebra::{Point3, UnitQuaternion};
+
+use crate::base_to_base::{BaseToBaseEstimate, BaseToBaseInitial, refine_base_to_base};
+use crate::camera::CameraModel;
+use crate::handeye::{self, HandEyeMethod};
+use crate::refine::{
+    BoardCapture, CaptureRejection, HandEyeEstimate, NoiseModel, RefineOptions, refine_hand_eye,
+};
+use crate::{CalibError, Iso3};
+
+/// One robot's captures: the corners and, per capture, the board pose its
+/// image alone gives (PnP), which the closed-form seed needs.
+#[derive(Debug, Clone, Copy)]
+pub struct RobotCaptures<'a> {
+    pub camera: &'a CameraModel,
+    pub captures: &'a [BoardCapture],
+    pub camera_from_target: &'a [Iso3],
+}
+
+/// Why a capture is out, from any stage.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Rejection {
+    /// The seed's screen: the capture puts the board this far from the others.
+    Gross { distance_m: f64, limit_m: f64 },
+    /// The refinement's reasons.
+    Fit(CaptureRejection),
+}
+
+impl std::fmt::Display for Rejection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Rejection::Gross {
+                distance_m,
+                limit_m,
+            } => write!(
+                f,
+                "its flange pose puts the board {:.1} mm from where the other captures put it \
+                 (limit {:.1} mm): a wrong or mistyped row?",
+                distance_m * 1e3,
+                limit_m * 1e3
+            ),
+            Rejection::Fit(r) => write!(f, "{r}"),
+        }
+    }
+}
+
+/// A closed-form seed and the captures it screened out.
+#[derive(Debug, Clone)]
+pub struct Seed {
+    pub flange_from_camera: Iso3,
+    pub base_from_target: Iso3,
+    /// Per capture, `Some` when it was screened out.
+    pub rejections: Vec<Option<Rejection>>,
+}
+
+/// The board positions (a point at the board's centre of the seen corners) in
+/// the base by every capture, for the screen.
+fn board_points_in_base(
+    x: &Iso3,
+    robot: &RobotCaptures<'_>,
+    keep: &[bool],
+) -> Vec<(usize, Iso3, Point3<f64>)> {
+    robot
+        .captures
+        .iter()
+        .zip(robot.camera_from_target)
+        .enumerate()
+        .filter(|(i, _)| keep[*i])
+        .map(|(i, (cap, c))| {
+            let n = cap.target_points.len().max(1) as f64;
+            let centre = Point3::from(
+                cap.target_points
+                    .iter()
+                    .fold(nalgebra::Vector3::zeros(), |a, p| a + p.coords)
+                    / n,
+            );
+            let w = cap.base_from_flange * x * c;
+            (i, w, w * centre)
+        })
+        .collect()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Smallest distance that counts as gross: far beyond robot noise (≤ 1 mm) and
+/// PnP error at working distances, far below a typo (centimetres).
+pub const GROSS_FLOOR_M: f64 = 0.02;
+
+/// Park's closed form with the gross-row screen. The distance of each
+/// capture's board point from the median is compared with
+/// `max(GROSS_FLOOR_M, median + 8 * 1.4826 * MAD)`.
+pub fn seed_hand_eye(
+    robot: &RobotCaptures<'_>,
+    options: &RefineOptions,
+) -> Result<Seed, CalibError> {
+    let n = robot.captures.len();
+    if robot.camera_from_target.len() != n {
+        return Err(CalibError::Inconsistent(format!(
+            "{n} captures but {} board poses",
+            robot.camera_from_target.len()
+        )));
+    }
+    let mut keep = vec![true; n];
+    let mut rejections: Vec<Option<Rejection>> = vec![None; n];
+    for _ in 0..3 {
+        let b: Vec<Iso3> = (0..n)
+            .filter(|i| keep[*i])
+            .map(|i| robot.captures[i].base_from_flange)
+            .collect();
+        let c: Vec<Iso3> = (0..n)
+            .filter(|i| keep[*i])
+            .map(|i| robot.camera_from_target[i])
+            .collect();
+        let x = handeye::hand_eye_with(&b, &c, HandEyeMethod::Park, &options.motion)?;
+        let points = board_points_in_base(&x, robot, &keep);
+        let median_point = Point3::new(
+            median(points.iter().map(|p| p.2.x).collect()),
+            median(points.iter().map(|p| p.2.y).collect()),
+            median(points.iter().map(|p| p.2.z).collect()),
+        );
+        let d: Vec<f64> = points.iter().map(|p| (p.2 - median_point).norm()).collect();
+        let med = median(d.clone());
+        let mad = median(d.iter().map(|v| (v - med).abs()).collect());
+        let limit = (med + 8.0 * 1.4826 * mad).max(GROSS_FLOOR_M);
+        let mut changed = false;
+        for (p, dist) in points.iter().zip(&d) {
+            if *dist > limit {
+                keep[p.0] = false;
+                rejections[p.0] = Some(Rejection::Gross {
+                    distance_m: *dist,
+                    limit_m: limit,
+                });
+                changed = true;
+            }
+        }
+        let kept = keep.iter().filter(|k| **k).count();
+        if kept * 2 < n {
+            return Err(CalibError::TooFewInliers(format!(
+                "{} of {n} captures put the board more than {:.1} mm from the others: \
+                 the robot poses and board poses do not belong together",
+                n - kept,
+                limit * 1e3
+            )));
+        }
+        if !changed {
+            let ws: Vec<Iso3> = points.iter().map(|p| p.1).collect();
+            let rotation = crate::pose::average_rotations(
+                &ws.iter()
+                    .map(|w| w.rotation)
+                    .collect::<Vec<UnitQuaternion<f64>>>(),
+                None,
+            )?;
+            let w = Iso3::from_parts(
+                nalgebra::Translation3::new(
+                    median(ws.iter().map(|w| w.translation.x).collect()),
+                    median(ws.iter().map(|w| w.translation.y).collect()),
+                    median(ws.iter().map(|w| w.translation.z).collect()),
+                ),
+                rotation,
+            );
+            // The board pose of the closed form given its hand-eye (least squares).
+            let w = handeye::base_from_target_given(&x, &b, &c).unwrap_or(w);
+            return Ok(Seed {
+                flange_from_camera: x,
+                base_from_target: w,
+                rejections,
+            });
+        }
+    }
+    Err(CalibError::TooFewInliers(
+        "the gross-row screen did not settle in 3 rounds".into(),
+    ))
+}
+
+/// One robot's hand-eye by the default estimator.
+#[derive(Debug, Clone)]
+pub struct HandEyeRun {
+    /// Its hand-eye covariance includes the split-half check's factor.
+    pub estimate: HandEyeEstimate,
+    /// `None` when too few captures to split.
+    pub split: Option<SplitCheck>,
+    /// Per capture (all of them, in order), why it is out, if it is.
+    pub rejections: Vec<Option<Rejection>>,
+}
+
+fn kept<T: Clone>(items: &[T], rejections: &[Option<Rejection>]) -> Vec<T> {
+    items
+        .iter()
+        .zip(rejections)
+        .filter(|(_, r)| r.is_none())
+        .map(|(v, _)| v.clone())
+        .collect()
+}
+
+/// Merges the fit's per-capture reasons (over the kept captures) into the
+/// screen's (over all).
+fn merge(screen: &[Option<Rejection>], fit: &[Option<CaptureRejection>]) -> Vec<Option<Rejection>> {
+    let mut fit = fit.iter();
+    screen
+        .iter()
+        .map(|s| match s {
+            Some(r) => Some(r.clone()),
+            None => fit.next().cloned().flatten().map(Rejection::Fit),
+        })
+        .collect()
+}
+
+/// Seed, screen and refine one robot.
+pub fn estimate_hand_eye(
+    robot: &RobotCaptures<'_>,
+    options: &RefineOptions,
+) -> Result<HandEyeRun, CalibError> {
+    let seed = seed_hand_eye(robot, options)?;
+    let captures = kept(robot.captures, &seed.rejections);
+    let estimate = refine_hand_eye(
+        robot.camera,
+        &captures,
+        (seed.flange_from_camera, seed.base_from_target),
+        options,
+    )?;
+    let rejections = merge(&seed.rejections, &estimate.rejections);
+    let mut estimate = estimate;
+    let used: Vec<BoardCapture> = captures
+        .iter()
+        .zip(&estimate.rejections)
+        .filter(|(_, r)| r.is_none())
+        .map(|(c, _)| c.clone())
+        .collect();
+    let split = split_check_hand_eye(robot.camera, &used, &estimate, options);
+    if let Some(s) = split {
+        estimate.flange_from_camera_covariance *= s.factor;
+        estimate.base_from_target_covariance *= s.factor;
+    }
+    Ok(HandEyeRun {
+        estimate,
+        split,
+        rejections,
+    })
+}
+
+/// `base1_from_base2` by the default estimator, with each robot's captures'
+/// reasons for being out (all captures, in order).
+#[derive(Debug, Clone)]
+pub struct BaseToBaseRun {
+    /// Its covariance includes the split-half check's factor.
+    pub estimate: BaseToBaseEstimate,
+    pub rejections: [Vec<Option<Rejection>>; 2],
+    /// `None` when too few captures to split.
+    pub split: Option<SplitCheck>,
+}
+
+/// Seed and screen each robot, then refine both as one problem from the seeds.
+pub fn estimate_base_to_base(
+    robots: [&RobotCaptures<'_>; 2],
+    options: &RefineOptions,
+) -> Result<BaseToBaseRun, CalibError> {
+    let seeds = [
+        seed_hand_eye(robots[0], options)?,
+        seed_hand_eye(robots[1], options)?,
+    ];
+    let c1 = kept(robots[0].captures, &seeds[0].rejections);
+    let c2 = kept(robots[1].captures, &seeds[1].rejections);
+    let initial = BaseToBaseInitial {
+        flange_from_camera: [seeds[0].flange_from_camera, seeds[1].flange_from_camera],
+        base1_from_target: seeds[0].base_from_target,
+        base1_from_base2: seeds[0].base_from_target * seeds[1].base_from_target.inverse(),
+    };
+    let estimate = refine_base_to_base(
+        [robots[0].camera, robots[1].camera],
+        [&c1, &c2],
+        &initial,
+        options,
+    )?;
+    let rejections = [
+        merge(&seeds[0].rejections, &estimate.rejections[0]),
+        merge(&seeds[1].rejections, &estimate.rejections[1]),
+    ];
+    let mut estimate = estimate;
+    let used = |caps: &[BoardCapture], r: &[Option<CaptureRejection>]| -> Vec<BoardCapture> {
+        caps.iter()
+            .zip(r)
+            .filter(|(_, r)| r.is_none())
+            .map(|(c, _)| c.clone())
+            .collect()
+    };
+    let u1 = used(&c1, &estimate.rejections[0]);
+    let u2 = used(&c2, &estimate.rejections[1]);
+    let split = split_check_base_to_base(
+        [robots[0].camera, robots[1].camera],
+        [&u1, &u2],
+        &estimate,
+        options,
+    );
+    if let Some(s) = split {
+        estimate.covariance *= s.factor;
+    }
+    estimate.covariance += common_mode(&estimate, [&u1, &u2], &options.systematic);
+    Ok(BaseToBaseRun {
+        estimate,
+        rejections,
+        split,
+    })
+}
+
+/// The split-half check of the noise model: the captures of each robot are cut
+/// into two halves by where the flange stands around the board (its azimuth
+/// in the base), each half is fitted alone, and the two estimates are compared
+/// with their own covariances.
+///
+/// Why: the noise model treats each capture's robot error as independent. A
+/// systematic error (a kinematic parameter off, a base that sags) is the same
+/// at nearby configurations, so part of it moves the estimate as a whole and
+/// does not average down; the fit's covariance then claims too much. Halves
+/// on opposite sides of the board see different parts of such an error, so
+/// their estimates disagree by more than their covariances allow:
+/// `χ² = dᵀ (C_A + C_B)⁻¹ d` on 6 dof. The covariance of the full estimate is
+/// multiplied by `max(1, χ² / 6)` (the Birge ratio). With independent errors
+/// the factor is 1 on average 60% of the time and seldom above 2.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SplitCheck {
+    pub chi2: f64,
+    pub factor: f64,
+}
+
+/// The covariance of `base1_from_base2` that a flange pose error common to
+/// all of a robot's captures causes: the configured systematic error,
+/// isotropic about the flange at the robot's mean capture pose. A common error
+/// `δ1` of robot 1 moves the board it sees by `δ1`; one of robot 2 moves
+/// `base1_from_base2` by `-Ad(Z) δ2`: `Σ1 + Ad(Z) Σ2 Ad(Z)ᵀ`.
+fn common_mode(
+    estimate: &BaseToBaseEstimate,
+    captures: [&[BoardCapture]; 2],
+    systematic: &crate::refine::RobotNoise,
+) -> nalgebra::Matrix6<f64> {
+    let mut out = nalgebra::Matrix6::zeros();
+    if systematic.sigma_t_m == 0.0 && systematic.sigma_r_rad == 0.0 {
+        return out;
+    }
+    let (a, b) = (systematic.sigma_r_rad.powi(2), systematic.sigma_t_m.powi(2));
+    let local = nalgebra::Matrix6::from_diagonal(&nalgebra::Vector6::new(a, a, a, b, b, b));
+    for (r, caps) in captures.iter().enumerate() {
+        let n = caps.len();
+        if n == 0 {
+            continue;
+        }
+        let t = caps.iter().fold(nalgebra::Vector3::zeros(), |acc, c| {
+            acc + c.base_from_flange.translation.vector
+        }) / n as f64;
+        let rotations: Vec<UnitQuaternion<f64>> =
+            caps.iter().map(|c| c.base_from_flange.rotation).collect();
+        let Ok(rotation) = crate::pose::average_rotations(&rotations, None) else {
+            continue;
+        };
+        let mean = Iso3::from_parts(nalgebra::Translation3::from(t), rotation);
+        let ad = crate::pose::adjoint(&mean);
+        let sigma = ad * local * ad.transpose();
+        if r == 0 {
+            out += sigma;
+        } else {
+            let z = crate::pose::adjoint(&estimate.base1_from_base2);
+            out += z * sigma * z.transpose();
+        }
+    }
+    out
+}
+
+/// Captures per robot and half below which the check is not run.
+pub const SPLIT_MIN_PER_HALF: usize = 5;
+
+/// Indices of `captures` in two halves by the azimuth of the flange about
+/// `centre_in_base` (the halves' boundary at the widest gap, so each half is
+/// one side of the board).
+fn halves(captures: &[BoardCapture], centre_in_base: &Point3<f64>) -> [Vec<usize>; 2] {
+    let mut az: Vec<(f64, usize)> = captures
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let d = c.base_from_flange.translation.vector - centre_in_base.coords;
+            (d.y.atan2(d.x), i)
+        })
+        .collect();
+    az.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Start after the widest gap, so the order runs around the board once.
+    let n = az.len();
+    let mut start = 0;
+    let mut widest = -1.0;
+    for k in 0..n {
+        let next = if k + 1 < n {
+            az[k + 1].0
+        } else {
+            az[0].0 + std::f64::consts::TAU
+        };
+        if next - az[k].0 > widest {
+            widest = next - az[k].0;
+            start = (k + 1) % n;
+        }
+    }
+    let order: Vec<usize> = (0..n).map(|k| az[(start + k) % n].1).collect();
+    let h = n / 2;
+    [order[..h].to_vec(), order[h..].to_vec()]
+}
+
+fn target_centre(captures: &[BoardCapture]) -> Point3<f64> {
+    let (sum, n) = captures
+        .iter()
+        .flat_map(|c| c.target_points.iter())
+        .fold((nalgebra::Vector3::zeros(), 0usize), |(s, n), p| {
+            (s + p.coords, n + 1)
+        });
+    Point3::from(sum / n.max(1) as f64)
+}
+
+/// The halves are fitted under the noise the whole fit found (each capture's
+/// pose covariance), with nothing rejected: the check compares estimates, not
+/// noise models.
+fn split_options(
+    options: &RefineOptions,
+    covariances: Vec<nalgebra::Matrix6<f64>>,
+) -> RefineOptions {
+    RefineOptions {
+        capture_chi2_limit: f64::INFINITY,
+        noise: NoiseModel::PerCapture(covariances),
+        max_rounds: 0,
+        ..options.clone()
+    }
+}
+
+fn birge(d: &nalgebra::Vector6<f64>, c: &nalgebra::Matrix6<f64>) -> Option<SplitCheck> {
+    let chi2 = crate::refine::mahalanobis2(d, c)?;
+    chi2.is_finite().then_some(SplitCheck {
+        chi2,
+        factor: (chi2 / 6.0).max(1.0),
+    })
+}
+
+/// The split-half check of a base-to-base fit over the captures it used.
+pub fn split_check_base_to_base(
+    cameras: [&CameraModel; 2],
+    captures: [&[BoardCapture]; 2],
+    estimate: &BaseToBaseEstimate,
+    options: &RefineOptions,
+) -> Option<SplitCheck> {
+    let centre = target_centre(captures[0]);
+    let w1 = estimate.base1_from_target;
+    let w2 = estimate.base1_from_base2.inverse() * w1;
+    let split = [
+        halves(captures[0], &(w1 * centre)),
+        halves(captures[1], &(w2 * centre)),
+    ];
+    if split.iter().flatten().any(|h| h.len() < SPLIT_MIN_PER_HALF) {
+        return None;
+    }
+    let initial = BaseToBaseInitial {
+        flange_from_camera: estimate.flange_from_camera,
+        base1_from_target: estimate.base1_from_target,
+        base1_from_base2: estimate.base1_from_base2,
+    };
+    let fit = |h: usize| {
+        let pick = |r: usize| -> Vec<BoardCapture> {
+            split[r][h]
+                .iter()
+                .map(|i| captures[r][*i].clone())
+                .collect()
+        };
+        let (a, b) = (pick(0), pick(1));
+        let covs = a
+            .iter()
+            .map(|c| estimate.noise[0].base_covariance(&c.base_from_flange))
+            .chain(
+                b.iter()
+                    .map(|c| estimate.noise[1].base_covariance(&c.base_from_flange)),
+            )
+            .collect();
+        refine_base_to_base(cameras, [&a, &b], &initial, &split_options(options, covs)).ok()
+    };
+    let (a, b) = (fit(0)?, fit(1)?);
+    let d = crate::pose::left_difference(&a.base1_from_base2, &b.base1_from_base2);
+    birge(&d, &(a.covariance + b.covariance))
+}
+
+/// The split-half check of a hand-eye fit over the captures it used.
+pub fn split_check_hand_eye(
+    camera: &CameraModel,
+    captures: &[BoardCapture],
+    estimate: &HandEyeEstimate,
+    options: &RefineOptions,
+) -> Option<SplitCheck> {
+    let centre = estimate.base_from_target * target_centre(captures);
+    let split = halves(captures, &centre);
+    if split.iter().any(|h| h.len() < SPLIT_MIN_PER_HALF) {
+        return None;
+    }
+    let fit = |h: usize| {
+        let caps: Vec<BoardCapture> = split[h].iter().map(|i| captures[*i].clone()).collect();
+        let covs = caps
+            .iter()
+            .map(|c| estimate.noise.base_covariance(&c.base_from_flange))
+            .collect();
+        refine_hand_eye(
+            camera,
+            &caps,
+            (estimate.flange_from_camera, estimate.base_from_target),
+            &split_options(options, covs),
+        )
+        .ok()
+    };
+    let (a, b) = (fit(0)?, fit(1)?);
+    let d = crate::pose::left_difference(&a.flange_from_camera, &b.flange_from_camera);
+    birge(
+        &d,
+        &(a.flange_from_camera_covariance + b.flange_from_camera_covariance),
+    )
+}
