@@ -22,13 +22,11 @@ use std::path::Path;
 use std::str::FromStr;
 use std::time::Instant;
 
-use b2b_calib::base_to_base::{initial_from_separate, refine_base_to_base};
 use b2b_calib::camera::CameraModel;
+use b2b_calib::estimate::{Rejection, RobotCaptures, estimate_base_to_base, estimate_hand_eye};
 use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
-use b2b_calib::refine::{
-    BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye, refine_hand_eye,
-};
+use b2b_calib::refine::{BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye};
 use b2b_calib::{CalibError, Iso3};
 use b2b_dataset::{Dataset, DatasetError, Target, TouchPair};
 use b2b_protocol::{
@@ -426,6 +424,7 @@ pub fn hand_eye(
         .map(|o| o.camera_from_target)
         .collect();
     let boards: Vec<BoardCapture> = obs.observations.iter().map(|o| o.board.clone()).collect();
+    let mut rejections: Vec<Option<Rejection>> = vec![None; boards.len()];
     let estimate = match choice {
         HandEyeChoice::ClosedForm(m) => {
             let x = handeye::hand_eye(&base_from_flange, &camera_from_target, m)
@@ -446,11 +445,17 @@ pub fn hand_eye(
             .map_err(calib(robot))?
         }
         HandEyeChoice::Refined => {
-            let x = handeye::hand_eye(&base_from_flange, &camera_from_target, HandEyeMethod::Park)
-                .map_err(calib(robot))?;
-            let w = handeye::base_from_target_given(&x, &base_from_flange, &camera_from_target)
-                .map_err(calib(robot))?;
-            refine_hand_eye(&obs.camera, &boards, (x, w), options).map_err(calib(robot))?
+            let run = estimate_hand_eye(
+                &RobotCaptures {
+                    camera: &obs.camera,
+                    captures: &boards,
+                    camera_from_target: &camera_from_target,
+                },
+                options,
+            )
+            .map_err(calib(robot))?;
+            rejections = run.rejections;
+            run.estimate
         }
     };
     let solve_ms = start.elapsed().as_secs_f64() * 1e3;
@@ -462,21 +467,31 @@ pub fn hand_eye(
         covariance: covariance6(&estimate.flange_from_camera_covariance),
         base_from_target: Some(Pose::from_isometry(&estimate.base_from_target)),
         reprojection_rms_px: estimate.rms_px,
-        per_capture: obs
-            .observations
-            .iter()
-            .zip(&estimate.per_capture)
-            .map(|(o, (rms, outliers))| CaptureResidual {
-                image: o.image.clone().unwrap_or_else(|| format!("row {}", o.row)),
-                rms_px: *rms,
-                outlier_corners: *outliers,
-            })
-            .collect(),
-        captures: CaptureSummary {
-            used: [(robot.to_owned(), obs.observations.len())]
-                .into_iter()
-                .collect(),
-            rejected: obs.rejected.clone(),
+        per_capture: {
+            // The fit's entries are over the captures the seed's screen kept.
+            let mut fit = estimate.per_capture.iter();
+            obs.observations
+                .iter()
+                .zip(&rejections)
+                .map(|(o, r)| {
+                    let (rms_px, outlier_corners) = match r {
+                        Some(Rejection::Gross { .. }) => (f64::NAN, o.board.pixels.len()),
+                        _ => fit.next().copied().unwrap_or((f64::NAN, 0)),
+                    };
+                    CaptureResidual {
+                        image: o.image.clone().unwrap_or_else(|| format!("row {}", o.row)),
+                        rms_px,
+                        outlier_corners,
+                    }
+                })
+                .collect()
+        },
+        captures: {
+            let (used, rejected) = after_fit(obs, &rejections);
+            CaptureSummary {
+                used: [(robot.to_owned(), used)].into_iter().collect(),
+                rejected,
+            }
         },
         timings_ms: Timings {
             detect: obs.detect_ms,
@@ -604,26 +619,35 @@ pub fn base_to_base_from_observations_with(
     }
     let [obs1, obs2] = robots;
     let solve_start = Instant::now();
-    let he1 = hand_eye(obs1, HandEyeChoice::Refined, options)?;
-    let he2 = hand_eye(obs2, HandEyeChoice::Refined, options)?;
-    let b1: Vec<BoardCapture> = obs1.observations.iter().map(|o| o.board.clone()).collect();
-    let b2: Vec<BoardCapture> = obs2.observations.iter().map(|o| o.board.clone()).collect();
+    let inputs = [obs1, obs2].map(|o| {
+        (
+            o.observations
+                .iter()
+                .map(|x| x.board.clone())
+                .collect::<Vec<BoardCapture>>(),
+            o.observations
+                .iter()
+                .map(|x| x.camera_from_target)
+                .collect::<Vec<Iso3>>(),
+        )
+    });
+    let captures = [0, 1].map(|r| RobotCaptures {
+        camera: &robots[r].camera,
+        captures: &inputs[r].0,
+        camera_from_target: &inputs[r].1,
+    });
     let pair = format!("{}+{}", obs1.robot, obs2.robot);
-    let joint = refine_base_to_base(
-        [&obs1.camera, &obs2.camera],
-        [&b1, &b2],
-        &initial_from_separate(&he1.estimate, &he2.estimate),
-        options,
-    )
-    .map_err(calib(&pair))?;
+    let run = estimate_base_to_base([&captures[0], &captures[1]], options).map_err(calib(&pair))?;
+    let joint = run.estimate;
     let (mean, p95) = predicted_error(
         &joint.covariance,
         &workspace_points(&(joint.base1_from_target * board_centre)),
         0.0,
     );
     let solve_ms = solve_start.elapsed().as_secs_f64() * 1e3;
-    let mut rejected = obs1.rejected.clone();
-    rejected.extend(obs2.rejected.iter().cloned());
+    let (used1, mut rejected) = after_fit(obs1, &run.rejections[0]);
+    let (used2, rejected2) = after_fit(obs2, &run.rejections[1]);
+    rejected.extend(rejected2);
     let detect_ms = obs1.detect_ms + obs2.detect_ms;
     Ok(CalibrationResult {
         format: RESULT_FORMAT.to_owned(),
@@ -644,12 +668,9 @@ pub fn base_to_base_from_observations_with(
         .into_iter()
         .collect(),
         captures: CaptureSummary {
-            used: [
-                (obs1.robot.clone(), obs1.observations.len()),
-                (obs2.robot.clone(), obs2.observations.len()),
-            ]
-            .into_iter()
-            .collect(),
+            used: [(obs1.robot.clone(), used1), (obs2.robot.clone(), used2)]
+                .into_iter()
+                .collect(),
             rejected,
         },
         timings_ms: Timings {
@@ -658,6 +679,28 @@ pub fn base_to_base_from_observations_with(
             total: detect_ms + solve_ms,
         },
     })
+}
+
+/// The captures a fit used, and every rejected one with its reason: those
+/// observation refused before the fit, then those the fit left out.
+fn after_fit(
+    obs: &RobotObservations,
+    rejections: &[Option<Rejection>],
+) -> (usize, Vec<RejectedCapture>) {
+    let mut rejected = obs.rejected.clone();
+    for (o, r) in obs.observations.iter().zip(rejections) {
+        if let Some(r) = r {
+            tracing::warn!(robot = %obs.robot, row = o.row, image = ?o.image, "capture left out: {r}");
+            rejected.push(RejectedCapture {
+                robot: obs.robot.clone(),
+                image: o.image.clone(),
+                row: Some(o.row),
+                reason: r.to_string(),
+            });
+        }
+    }
+    let used = rejections.iter().filter(|r| r.is_none()).count();
+    (used, rejected)
 }
 
 /// Checks a result against touch pairs; `tip_sigma_m` is each pointer's tip noise.

@@ -3,6 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
+use b2b_calib::Iso3;
+use b2b_calib::estimate::{RobotCaptures, estimate_hand_eye, seed_hand_eye};
 use b2b_calib::pose::{left_difference, pose_distance};
 use b2b_calib::refine::mahalanobis2;
 use b2b_calib::refine::{RefineOptions, RobotNoise};
@@ -31,10 +33,13 @@ fn bundled(name: &str) -> PathBuf {
 
 /// ViSP's published hand-eye on its own Franka data (a result of another tool,
 /// not the truth). OpenCV's Park lands 0.3 mm / 0.03 deg from it; our Park must be
-/// within 1 mm and 0.1 deg. The refinement weighs captures by what their corners
-/// and the (here much larger than configured) robot error say, so it may differ
-/// from the closed forms: it must stay within 3 of its own standard deviations
-/// of the published result.
+/// within 1 mm and 0.1 deg. The arm's pose error here is about 2 mm per
+/// capture (the residuals show it: 5-6 px RMS), so with 8 captures any
+/// estimate is uncertain by millimetres and a degree, and the refinement, which
+/// weighs each capture by that noise, differs from the closed form: it must stay
+/// within 4 of its own standard deviations of the published result, and
+/// predict each capture's corners from the other seven better than Park does
+/// (leave-one-out: the one check here that needs no truth).
 #[test]
 fn visp_hand_eye_matches_the_published_result() {
     let dir = shared_dataset("visp-franka-eye-in-hand");
@@ -55,13 +60,15 @@ fn visp_hand_eye_matches_the_published_result() {
         let sd_t = (cov[(3, 3)] + cov[(4, 4)] + cov[(5, 5)]).sqrt();
         let sd_r = (cov[(0, 0)] + cov[(1, 1)] + cov[(2, 2)]).sqrt();
         eprintln!(
-            "{choice}: {:.3} mm, {:.4} deg from ViSP's result (1-sigma {:.3} mm, {:.4} deg); RMS {:.3} px; robot noise x{:.0}",
+            "{choice}: {:.3} mm, {:.4} deg from ViSP's result (1-sigma {:.3} mm, {:.4} deg); RMS {:.3} px; robot noise {:.2} mm, {:.3} deg ({})",
             dt * 1e3,
             da.to_degrees(),
             sd_t * 1e3,
             sd_r.to_degrees(),
             est.rms_px,
-            est.robot_noise_scale.sqrt()
+            est.noise.sigma_t_m * 1e3,
+            est.noise.sigma_r_rad.to_degrees(),
+            est.noise.shape.name()
         );
         if choice == "park" {
             assert!(
@@ -70,23 +77,71 @@ fn visp_hand_eye_matches_the_published_result() {
             );
         } else {
             assert!(
-                dt < 3.0 * sd_t && da < 3.0 * sd_r,
+                dt < 4.0 * sd_t && da < 4.0 * sd_r,
                 "{choice}: {dt} m, {da} rad"
+            );
+            assert!(
+                est.noise.sigma_t_m > 0.5e-3,
+                "the arm's error is millimetres"
             );
         }
     }
+    // Leave one capture out, fit the rest, predict its corners.
+    let boards: Vec<_> = obs.observations.iter().map(|o| o.board.clone()).collect();
+    let poses: Vec<_> = obs
+        .observations
+        .iter()
+        .map(|o| o.camera_from_target)
+        .collect();
+    let n = boards.len();
+    let (mut park, mut refined) = (0.0, 0.0);
+    for i in 0..n {
+        let b: Vec<_> = (0..n)
+            .filter(|k| *k != i)
+            .map(|k| boards[k].clone())
+            .collect();
+        let c: Vec<_> = (0..n).filter(|k| *k != i).map(|k| poses[k]).collect();
+        let rest = RobotCaptures {
+            camera: &obs.camera,
+            captures: &b,
+            camera_from_target: &c,
+        };
+        let options = RefineOptions::default();
+        let seed = seed_hand_eye(&rest, &options).unwrap();
+        let run = estimate_hand_eye(&rest, &options).unwrap();
+        let held_out_rms = |x: &Iso3, w: &Iso3| {
+            let camera_from_target = (boards[i].base_from_flange * x).inverse() * w;
+            let sum: f64 = boards[i]
+                .target_points
+                .iter()
+                .zip(&boards[i].pixels)
+                .map(|(p, uv)| {
+                    (obs.camera.project(&(camera_from_target * p)).unwrap() - uv).norm_squared()
+                })
+                .sum();
+            (sum / boards[i].pixels.len() as f64).sqrt()
+        };
+        park += held_out_rms(&seed.flange_from_camera, &seed.base_from_target) / n as f64;
+        refined += held_out_rms(
+            &run.estimate.flange_from_camera,
+            &run.estimate.base_from_target,
+        ) / n as f64;
+    }
+    eprintln!("held-out corner prediction (RMS px): park {park:.2}, refined {refined:.2}");
+    assert!(refined < park, "refined {refined} px, park {park} px");
 }
 
 /// The simulator's rendered two-robot dataset: the result within 1 mm of the
 /// ground truth (which calibration never reads) and the touch check consistent
 /// with the scene's touch noise.
 ///
-/// The covariance's calibration depends on the configured robot pose noise. The
-/// simulated arms carry systematic kinematic (DH) errors of 0.1 mm and 0.005 deg
-/// per joint, about 0.3 mm at the flange (seven joints): configured so, the truth lies inside the
-/// 99.9% ellipsoid; with the default (repeatability only, 0.05 mm) it does not
-/// (Mahalanobis² ≈ 100), because systematic error biases the fit without
-/// showing in the residuals. The test pins both facts down.
+/// The simulated arms carry systematic kinematic (DH) errors of 0.1 mm and
+/// 0.005 deg per joint, about 0.3 mm at the flange. The fit estimates the noise
+/// it sees in the residuals, but a systematic error is largely common to
+/// nearby captures and moves the estimate without showing there: with the
+/// default the truth lies outside the 99.9% ellipsoid; with the arm's accuracy
+/// given (`systematic`, `--robot-accuracy-mm 0.3 --robot-accuracy-deg 0.015`)
+/// it lies inside. The test pins both facts down.
 #[test]
 fn base_to_base_on_the_simulated_dataset_is_within_its_predicted_error() {
     let dir = bundled("sim-checkerboard-2x12");
@@ -97,7 +152,7 @@ fn base_to_base_on_the_simulated_dataset_is_within_its_predicted_error() {
         .base1_from_base2
         .unwrap();
     let accuracy = RefineOptions {
-        robot_noise: RobotNoise {
+        systematic: RobotNoise {
             sigma_t_m: 0.3e-3,
             sigma_r_rad: 0.015f64.to_radians(),
         },
@@ -120,8 +175,8 @@ fn base_to_base_on_the_simulated_dataset_is_within_its_predicted_error() {
         // Each touch: tip noise 0.2 mm plus the robot's own positioning error.
         let (report, _) = verify(&result, ds.touch_points.as_ref().unwrap(), 0.3e-3).unwrap();
         eprintln!(
-            "robot noise {:.2} mm: {:.3} mm, {:.4} deg from the truth; Mahalanobis² {m2:.1}; touch mean {:.3} mm, within predicted p95 {:.2}",
-            opts.robot_noise.sigma_t_m * 1e3,
+            "systematic error configured {:.2} mm: {:.3} mm, {:.4} deg from the truth; Mahalanobis² {m2:.1}; touch mean {:.3} mm, within predicted p95 {:.2}",
+            opts.systematic.sigma_t_m * 1e3,
             dt * 1e3,
             da.to_degrees(),
             report.touch_mean_mm,
@@ -161,4 +216,74 @@ fn unknown_robot_and_methods_are_named() {
     let err = "bogus".parse::<HandEyeChoice>().unwrap_err();
     assert!(err.contains("tsai") && err.contains("refined"), "{err}");
     assert!("nope".parse::<B2bMethod>().is_err());
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+/// One mistyped row (tx off by 65 cm) is left out with its reason, named by
+/// row and image; the rest give the same result as the clean dataset.
+#[test]
+fn a_mistyped_row_is_rejected_with_its_reason_and_the_rest_used() {
+    let src = bundled("sim-checkerboard-2x12");
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    copy_dir(&src, &dir);
+    let csv = dir.join("robot1/captures.csv");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+    let mut cols: Vec<String> = lines[4].split(',').map(str::to_owned).collect();
+    let tx: f64 = cols[2].parse().unwrap();
+    cols[2] = format!("{}", tx + 0.65);
+    lines[4] = cols.join(",");
+    std::fs::write(&csv, lines.join("\n") + "\n").unwrap();
+    let truth = load_ground_truth(&src)
+        .unwrap()
+        .unwrap()
+        .base1_from_base2
+        .unwrap();
+    let clean = base_to_base(
+        &Dataset::load(&src).unwrap(),
+        B2bMethod::Board,
+        &RefineOptions::default(),
+    )
+    .unwrap();
+    let result = base_to_base(
+        &Dataset::load(&dir).unwrap(),
+        B2bMethod::Board,
+        &RefineOptions::default(),
+    )
+    .unwrap();
+    eprintln!("rejected: {:?}", result.captures.rejected);
+    assert_eq!(result.captures.used["robot1"], 11);
+    assert_eq!(result.captures.used["robot2"], 12);
+    let rejected = &result.captures.rejected;
+    assert_eq!(rejected.len(), 1, "{rejected:?}");
+    assert_eq!(rejected[0].row, Some(4));
+    assert_eq!(rejected[0].image.as_deref(), Some("images/003.png"));
+    assert!(
+        rejected[0]
+            .reason
+            .contains("from where the other captures put it"),
+        "{rejected:?}"
+    );
+    let est = result.base1_from_base2.to_isometry("T").unwrap();
+    let (dt, da) = pose_distance(&est, &truth);
+    let (ct, _) = pose_distance(&clean.base1_from_base2.to_isometry("T").unwrap(), &truth);
+    eprintln!(
+        "with the typo row: {:.3} mm, {:.4} deg from the truth (clean: {:.3} mm)",
+        dt * 1e3,
+        da.to_degrees(),
+        ct * 1e3
+    );
+    assert!(dt < 1e-3 && dt < 2.0 * ct.max(0.2e-3), "{dt} m");
 }

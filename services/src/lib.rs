@@ -44,18 +44,28 @@ pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<
         .with_context(|| format!("{}: not a valid file of this kind", path.display()))
 }
 
-/// The robot pose noise every estimating command takes: one standard deviation
-/// of the flange pose error per capture. The default is the iiwa's repeatability;
-/// give the arm's absolute accuracy when its kinematic model is not calibrated
-/// (systematic error biases a fit without showing in its residuals).
+/// The robot pose noise every estimating command takes. `--robot-sigma-*` is
+/// the per-capture error the first fit assumes (the iiwa's repeatability); the
+/// fit then estimates the noise from its residuals. `--robot-accuracy-*` is the
+/// arm's systematic error when its kinematic model is not calibrated: it
+/// biases a fit without showing in its residuals, so it is added to the
+/// result's covariance as given.
 #[derive(Debug, Clone, Copy, clap::Args)]
 pub struct RobotNoiseArgs {
-    /// Flange translation error per capture, 1 sigma (mm).
+    /// Flange translation error per capture for the first fit, 1 sigma (mm).
     #[arg(long, default_value_t = 0.05)]
     pub robot_sigma_mm: f64,
     /// Flange rotation error per capture, 1 sigma (degrees).
     #[arg(long, default_value_t = 0.01)]
     pub robot_sigma_deg: f64,
+    /// The arm's systematic (absolute) pose error, 1 sigma (mm): kinematic
+    /// errors that do not show in the residuals. Added to the result's
+    /// covariance as an error common to all captures. 0: none.
+    #[arg(long, default_value_t = 0.0)]
+    pub robot_accuracy_mm: f64,
+    /// The arm's systematic orientation error, 1 sigma (degrees).
+    #[arg(long, default_value_t = 0.0)]
+    pub robot_accuracy_deg: f64,
 }
 
 impl RobotNoiseArgs {
@@ -69,7 +79,19 @@ impl RobotNoiseArgs {
             self.robot_sigma_deg.is_finite() && self.robot_sigma_deg >= 0.0,
             "--robot-sigma-deg must be a number >= 0"
         );
+        anyhow::ensure!(
+            self.robot_accuracy_mm.is_finite() && self.robot_accuracy_mm >= 0.0,
+            "--robot-accuracy-mm must be a number >= 0"
+        );
+        anyhow::ensure!(
+            self.robot_accuracy_deg.is_finite() && self.robot_accuracy_deg >= 0.0,
+            "--robot-accuracy-deg must be a number >= 0"
+        );
         Ok(b2b_calib::refine::RefineOptions {
+            systematic: b2b_calib::refine::RobotNoise {
+                sigma_t_m: self.robot_accuracy_mm * 1e-3,
+                sigma_r_rad: self.robot_accuracy_deg.to_radians(),
+            },
             robot_noise: b2b_calib::refine::RobotNoise {
                 sigma_t_m: self.robot_sigma_mm * 1e-3,
                 sigma_r_rad: self.robot_sigma_deg.to_radians(),
