@@ -1,0 +1,835 @@
+//! The error-model study: the default estimator against the seven closed forms
+//! and against the maximum-likelihood limit, under robot pose errors of several
+//! structures, magnitudes, capture counts and targets.
+//!
+//! Two iiwa arms (a 7 and a 14) a metre apart face a board on the table between
+//! them. Viewpoints are planned around the board, each reached by the nominal
+//! kinematics' IK; the robot then reports a flange pose with an error of one
+//! structure:
+//!
+//! - `a` orientation turned in the base frame, position moved independently;
+//! - `b` tool side, `base_from_flange * delta`;
+//! - `c` a rotation about the base origin, `delta * base_from_flange`;
+//! - `d` joint encoder noise through the kinematics;
+//! - `e` systematic DH errors (drawn once per arm, the same at every capture);
+//! - `f` structure `a` plus one (15 captures) or two (30) gross typo rows.
+//!
+//! "1x" is the iiwa's repeatability as the project configures it (0.05 mm and
+//! 0.01° per axis); for `d` a joint noise giving about that at the flange
+//! (0.004° per joint), for `e` DH errors of 0.03 mm and 0.002° per parameter.
+//! Corner noise is 0.15 px on a 1280x720 camera. Every run of the default
+//! starts from its own closed-form seed, never from the truth.
+//!
+//! The limit: the maximum-likelihood estimate given the true error structure
+//! and magnitudes (each capture's true pose covariance), seeded at the truth,
+//! without gross rows. For `e` the errors are not random across captures, so
+//! no such estimate exists; its "limit" is the fit to the true flange poses, a
+//! bound that no method reaches (marked "bound").
+//!
+//! The measure is the error at touch locations: the mean distance between
+//! where the estimate and the truth map points of a 0.3 m cube centred on the
+//! board (27 points), averaged over seeds.
+//!
+//! `cargo test -p b2b-sim --test error_models -- --nocapture` prints the table.
+
+use b2b_calib::base_to_base::{BaseToBaseInitial, refine_base_to_base};
+use b2b_calib::camera::CameraModel;
+use b2b_calib::estimate::{RobotCaptures, estimate_base_to_base};
+use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
+use b2b_calib::metrics::predicted_error;
+use b2b_calib::pose::{adjoint, left_difference, perturb_left, skew};
+use b2b_calib::refine::{BoardCapture, NoiseFrame, NoiseModel, RefineOptions, RobotNoise};
+use b2b_calib::synth::{board_points, fit_pose};
+use b2b_sim::generate::look_at;
+use b2b_sim::kinematics::{Arm, IiwaModel, IkOptions, Joints};
+use nalgebra::{Matrix6, Point2, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+type Iso3 = nalgebra::Isometry3<f64>;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Structure {
+    BaseAxes,
+    Tool,
+    BaseOrigin,
+    Encoder,
+    Dh,
+    Typo,
+}
+
+impl Structure {
+    fn label(&self) -> &'static str {
+        match self {
+            Structure::BaseAxes => "a base-axes",
+            Structure::Tool => "b tool",
+            Structure::BaseOrigin => "c base-origin",
+            Structure::Encoder => "d encoder",
+            Structure::Dh => "e DH",
+            Structure::Typo => "f typo rows",
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Board {
+    Checkerboard,
+    Charuco,
+}
+
+const SIGMA_T_1X: f64 = 0.05e-3;
+const SIGMA_R_1X_DEG: f64 = 0.01;
+const ENCODER_1X_DEG: f64 = 0.004;
+const DH_LENGTH_1X: f64 = 0.03e-3;
+const DH_ANGLE_1X_DEG: f64 = 0.002;
+const PIXEL_SIGMA: f64 = 0.15;
+
+fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+    let u1: f64 = rng.random::<f64>().max(1e-300);
+    let u2: f64 = rng.random();
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+fn gauss6(rng: &mut ChaCha8Rng, sr: f64, st: f64) -> Vector6<f64> {
+    Vector6::new(
+        sr * gauss(rng),
+        sr * gauss(rng),
+        sr * gauss(rng),
+        st * gauss(rng),
+        st * gauss(rng),
+        st * gauss(rng),
+    )
+}
+
+fn camera() -> CameraModel {
+    CameraModel {
+        width: 1280,
+        height: 720,
+        fx: 910.0,
+        fy: 910.0,
+        cx: 640.0,
+        cy: 360.0,
+        dist: [0.0; 8],
+    }
+}
+
+/// One robot's generated captures and the truth behind them.
+struct RobotData {
+    captures: Vec<BoardCapture>,
+    camera_from_target: Vec<Iso3>,
+    /// Per capture: the true covariance of the reported pose's error (left, base).
+    true_cov: Vec<Matrix6<f64>>,
+    /// Per capture: the true flange pose.
+    true_base_from_flange: Vec<Iso3>,
+    /// Rows made gross typos.
+    typos: Vec<usize>,
+}
+
+struct Problem {
+    robots: [RobotData; 2],
+    base1_from_base2: Iso3,
+    base1_from_target: Iso3,
+    flange_from_camera: [Iso3; 2],
+    board_centre: Point3<f64>,
+}
+
+/// `left_difference(fk(q + h e_i), fk(q)) / h` for each joint: the map from joint
+/// errors to the left perturbation of the flange pose in the base.
+fn joint_map(arm: &Arm, q: &Joints) -> nalgebra::SMatrix<f64, 6, 7> {
+    let f0 = arm.fk(q);
+    let h = 1e-7;
+    let mut j = nalgebra::SMatrix::<f64, 6, 7>::zeros();
+    for i in 0..7 {
+        let mut qh = *q;
+        qh[i] += h;
+        j.set_column(i, &(left_difference(&arm.fk(&qh), &f0) / h));
+    }
+    j
+}
+
+fn diag6(sr: f64, st: f64) -> Matrix6<f64> {
+    Matrix6::from_diagonal(&Vector6::new(
+        sr * sr,
+        sr * sr,
+        sr * sr,
+        st * st,
+        st * st,
+        st * st,
+    ))
+}
+
+fn board_geometry(board: Board) -> (Vec<Point3<f64>>, Point3<f64>) {
+    let (cols, rows, square) = match board {
+        Board::Checkerboard => (9, 6, 0.025),
+        Board::Charuco => (6, 4, 0.035),
+    };
+    (
+        board_points(cols, rows, square),
+        Point3::new(
+            (cols - 1) as f64 * square / 2.0,
+            (rows - 1) as f64 * square / 2.0,
+            0.0,
+        ),
+    )
+}
+
+/// One planned viewpoint and its standard-normal draws, shared by every
+/// structure and magnitude of a seed (a paired design: cells differ only in
+/// what is studied).
+#[derive(Clone)]
+struct View {
+    q: Joints,
+    delta: Vector6<f64>,
+    dq: [f64; 7],
+    pixel_noise: Vec<(f64, f64)>,
+    keep: Vec<bool>,
+}
+
+#[derive(Clone)]
+struct Geometry {
+    base1_from_base2: Iso3,
+    base1_from_target: Iso3,
+    flange_from_camera: [Iso3; 2],
+    models: [IiwaModel; 2],
+    views: [Vec<View>; 2],
+    /// Standard-normal DH draws per arm: d, a, alpha, theta per joint.
+    dh: [[f64; 28]; 2],
+}
+
+fn plan_views(
+    rng: &mut ChaCha8Rng,
+    model: IiwaModel,
+    base_from_target: &Iso3,
+    flange_from_camera: &Iso3,
+    board: Board,
+    n: usize,
+) -> Vec<View> {
+    let nominal = Arm::new(model);
+    let (points, centre) = board_geometry(board);
+    let cam = camera();
+    let ik = IkOptions {
+        restarts: 1,
+        max_iterations: 100,
+        tolerance_m: 1e-7,
+        tolerance_rad: 1e-7,
+        ..Default::default()
+    };
+    let shoulder = Point3::new(0.0, 0.0, nominal.dh[0].d);
+    let reach = nominal.dh[2].d + nominal.dh[4].d - 0.02;
+    let mut views = Vec::with_capacity(n);
+    let mut attempts = 0;
+    while views.len() < n {
+        attempts += 1;
+        assert!(attempts < 400 * n, "could not plan {n} viewpoints");
+        let tilt = rng.random_range(0.0..40f64.to_radians());
+        let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
+        let dist = rng.random_range(0.35..0.6);
+        let dir = Vector3::new(
+            tilt.sin() * azimuth.cos(),
+            tilt.sin() * azimuth.sin(),
+            -tilt.cos(),
+        );
+        let jitter = Vector3::new(
+            rng.random_range(-0.03..0.03),
+            rng.random_range(-0.03..0.03),
+            0.0,
+        );
+        let roll = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        let target_from_camera = look_at(
+            &(centre + dir * dist),
+            &(centre + jitter),
+            &Vector3::x(),
+            roll,
+        );
+        let desired = base_from_target * target_from_camera * flange_from_camera.inverse();
+        let wrist = desired * Point3::new(0.0, 0.0, -nominal.dh[6].d);
+        if (wrist - shoulder).norm() > reach {
+            continue;
+        }
+        let Ok(q) = nominal.ik(&desired, &Arm::comfortable(), &ik) else {
+            continue;
+        };
+        let camera_from_target = (nominal.fk(&q) * flange_from_camera).inverse() * base_from_target;
+        let all_in = points.iter().all(|p| {
+            cam.project(&(camera_from_target * p))
+                .is_some_and(|uv| cam.contains(&uv))
+        });
+        if !all_in {
+            continue;
+        }
+        let keep_share = rng.random_range(0.6..1.0);
+        let keep: Vec<bool> = points
+            .iter()
+            .map(|_| board == Board::Checkerboard || rng.random::<f64>() < keep_share)
+            .collect();
+        if keep.iter().filter(|k| **k).count() < 8 {
+            continue;
+        }
+        views.push(View {
+            q,
+            delta: gauss6(rng, 1.0, 1.0),
+            dq: std::array::from_fn(|_| gauss(rng)),
+            pixel_noise: points.iter().map(|_| (gauss(rng), gauss(rng))).collect(),
+            keep,
+        });
+    }
+    views
+}
+
+fn geometry(seed: u64, n: usize, board: Board) -> Geometry {
+    static CACHE: std::sync::OnceLock<
+        std::sync::Mutex<std::collections::HashMap<(u64, usize, bool), Geometry>>,
+    > = std::sync::OnceLock::new();
+    let key = (seed, n, board == Board::Charuco);
+    let cache = CACHE.get_or_init(Default::default);
+    if let Some(g) = cache.lock().unwrap().get(&key) {
+        return g.clone();
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ ((n as u64) << 32) ^ ((key.2 as u64) << 40));
+    let base1_from_base2 = Iso3::from_parts(
+        Translation3::new(
+            1.1 + rng.random_range(-0.05..0.05),
+            rng.random_range(-0.1..0.1),
+            0.0,
+        ),
+        UnitQuaternion::from_axis_angle(
+            &Vector3::z_axis(),
+            std::f64::consts::PI + rng.random_range(-0.3..0.3),
+        ),
+    );
+    let base1_from_target = Iso3::from_parts(
+        Translation3::new(0.55, rng.random_range(-0.05..0.05), 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rng.random_range(-3.0..3.0)),
+    );
+    let hand_eye = |rng: &mut ChaCha8Rng| {
+        Iso3::from_parts(
+            Translation3::new(
+                rng.random_range(-0.06..0.06),
+                rng.random_range(-0.06..0.06),
+                0.06,
+            ),
+            UnitQuaternion::from_scaled_axis(Vector3::new(
+                rng.random_range(-0.1..0.1),
+                rng.random_range(-0.1..0.1),
+                rng.random_range(-3.0..3.0),
+            )),
+        )
+    };
+    let x = [hand_eye(&mut rng), hand_eye(&mut rng)];
+    let models = [IiwaModel::Iiwa7R800, IiwaModel::Iiwa14R820];
+    let targets = [
+        base1_from_target,
+        base1_from_base2.inverse() * base1_from_target,
+    ];
+    let views = [0, 1].map(|r| plan_views(&mut rng, models[r], &targets[r], &x[r], board, n));
+    let dh = [0, 1].map(|_| std::array::from_fn(|_| gauss(&mut rng)));
+    let g = Geometry {
+        base1_from_base2,
+        base1_from_target,
+        flange_from_camera: x,
+        models,
+        views,
+        dh,
+    };
+    cache.lock().unwrap().insert(key, g.clone());
+    g
+}
+
+fn make_robot(
+    g: &Geometry,
+    r: usize,
+    board: Board,
+    structure: Structure,
+    magnitude: f64,
+) -> RobotData {
+    let nominal = Arm::new(g.models[r]);
+    let mut true_arm = nominal.clone();
+    if structure == Structure::Dh {
+        for (i, dh) in true_arm.dh.iter_mut().enumerate() {
+            dh.d += magnitude * DH_LENGTH_1X * g.dh[r][4 * i];
+            dh.a += magnitude * DH_LENGTH_1X * g.dh[r][4 * i + 1];
+            dh.alpha += magnitude * DH_ANGLE_1X_DEG.to_radians() * g.dh[r][4 * i + 2];
+            dh.theta += magnitude * DH_ANGLE_1X_DEG.to_radians() * g.dh[r][4 * i + 3];
+        }
+    }
+    let base_from_target = if r == 0 {
+        g.base1_from_target
+    } else {
+        g.base1_from_base2.inverse() * g.base1_from_target
+    };
+    let flange_from_camera = g.flange_from_camera[r];
+    let (points, _) = board_geometry(board);
+    let cam = camera();
+    let sr = magnitude * SIGMA_R_1X_DEG.to_radians();
+    let st = magnitude * SIGMA_T_1X;
+    let sq = magnitude * ENCODER_1X_DEG.to_radians();
+    let mut out = RobotData {
+        captures: vec![],
+        camera_from_target: vec![],
+        true_cov: vec![],
+        true_base_from_flange: vec![],
+        typos: vec![],
+    };
+    for v in &g.views[r] {
+        let q = v.q;
+        let fk = nominal.fk(&q);
+        let delta = Vector6::new(
+            sr * v.delta[0],
+            sr * v.delta[1],
+            sr * v.delta[2],
+            st * v.delta[3],
+            st * v.delta[4],
+            st * v.delta[5],
+        );
+        let (true_flange, reported, cov) = match structure {
+            Structure::BaseAxes | Structure::Typo => {
+                let rot =
+                    UnitQuaternion::from_scaled_axis(Vector3::new(delta[0], delta[1], delta[2]));
+                let reported = Iso3::from_parts(
+                    Translation3::from(
+                        fk.translation.vector + Vector3::new(delta[3], delta[4], delta[5]),
+                    ),
+                    rot * fk.rotation,
+                );
+                let mut s = Matrix6::identity();
+                s.fixed_view_mut::<3, 3>(3, 0)
+                    .copy_from(&skew(&fk.translation.vector));
+                (fk, reported, s * diag6(sr, st) * s.transpose())
+            }
+            Structure::Tool => {
+                let reported = fk * perturb_left(&delta, &Iso3::identity());
+                let ad = adjoint(&fk);
+                (fk, reported, ad * diag6(sr, st) * ad.transpose())
+            }
+            Structure::BaseOrigin => (fk, perturb_left(&delta, &fk), diag6(sr, st)),
+            Structure::Encoder => {
+                let qm: Joints = std::array::from_fn(|i| q[i] + sq * v.dq[i]);
+                let j = joint_map(&nominal, &q);
+                (fk, nominal.fk(&qm), j * j.transpose() * sq * sq)
+            }
+            Structure::Dh => (true_arm.fk(&q), fk, Matrix6::zeros()),
+        };
+        let camera_from_target = (true_flange * flange_from_camera).inverse() * base_from_target;
+        let mut obs: Vec<(usize, Point2<f64>)> = Vec::new();
+        for (k, p) in points.iter().enumerate() {
+            if !v.keep[k] {
+                continue;
+            }
+            if let Some(uv) = cam.project(&(camera_from_target * p)) {
+                let noisy = Point2::new(
+                    uv.x + PIXEL_SIGMA * v.pixel_noise[k].0,
+                    uv.y + PIXEL_SIGMA * v.pixel_noise[k].1,
+                );
+                if cam.contains(&noisy) {
+                    obs.push((k, noisy));
+                }
+            }
+        }
+        let fitted = fit_pose(&cam, &points, &obs, &camera_from_target).expect("pose fit");
+        out.captures.push(BoardCapture {
+            base_from_flange: reported,
+            target_points: obs.iter().map(|(k, _)| points[*k]).collect(),
+            pixels: obs.iter().map(|(_, uv)| *uv).collect(),
+        });
+        out.camera_from_target.push(fitted);
+        out.true_cov.push(cov);
+        out.true_base_from_flange.push(true_flange);
+    }
+    if structure == Structure::Typo {
+        // One typo in 15 captures, two in 30: tx off by 65 cm; a rotation off by 10°.
+        let n = out.captures.len();
+        let a = n / 3;
+        let m = out.captures[a].base_from_flange;
+        out.captures[a].base_from_flange = Iso3::from_parts(
+            Translation3::from(m.translation.vector + Vector3::new(0.65, 0.0, 0.0)),
+            m.rotation,
+        );
+        out.typos.push(a);
+        if n >= 30 {
+            let b = 2 * n / 3;
+            let m = out.captures[b].base_from_flange;
+            out.captures[b].base_from_flange = Iso3::from_parts(
+                m.translation,
+                UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 10f64.to_radians())
+                    * m.rotation,
+            );
+            out.typos.push(b);
+        }
+    }
+    out
+}
+
+fn problem(seed: u64, structure: Structure, magnitude: f64, n: usize, board: Board) -> Problem {
+    let g = geometry(seed, n, board);
+    let robots = [0, 1].map(|r| make_robot(&g, r, board, structure, magnitude));
+    Problem {
+        robots,
+        base1_from_base2: g.base1_from_base2,
+        base1_from_target: g.base1_from_target,
+        flange_from_camera: g.flange_from_camera,
+        board_centre: board_geometry(board).1,
+    }
+}
+
+/// 27 touch locations: a 0.3 m cube centred on the board (in base1).
+fn touch_points(centre_in_base1: &Point3<f64>) -> Vec<Point3<f64>> {
+    let mut pts = Vec::with_capacity(27);
+    for i in 0..3 {
+        for j in 0..3 {
+            for k in 0..3 {
+                let o = Vector3::new(i as f64, j as f64, k as f64) * 0.15 - Vector3::repeat(0.15);
+                pts.push(centre_in_base1 + o);
+            }
+        }
+    }
+    pts
+}
+
+/// Per touch point, |estimate - truth| where each maps base2 points into base1.
+fn touch_errors(estimate: &Iso3, truth: &Iso3, points: &[Point3<f64>]) -> Vec<f64> {
+    let d = estimate * truth.inverse();
+    points.iter().map(|p| (d * p - p).norm()).collect()
+}
+
+const CLOSED: [&str; 7] = [
+    "tsai",
+    "park",
+    "horaud",
+    "andreff",
+    "daniilidis",
+    "shah",
+    "li",
+];
+
+/// `base1_from_base2` of each closed form (both robots by the same method).
+fn closed_forms(p: &Problem) -> Vec<Option<Iso3>> {
+    let board_pose = |r: &RobotData, k: usize| -> Option<Iso3> {
+        let b: Vec<Iso3> = r.captures.iter().map(|c| c.base_from_flange).collect();
+        let c = &r.camera_from_target;
+        let methods = [
+            HandEyeMethod::Tsai,
+            HandEyeMethod::Park,
+            HandEyeMethod::Horaud,
+            HandEyeMethod::Andreff,
+            HandEyeMethod::Daniilidis,
+        ];
+        if k < 5 {
+            let x = handeye::hand_eye(&b, c, methods[k]).ok()?;
+            handeye::base_from_target_given(&x, &b, c).ok()
+        } else {
+            let m = if k == 5 {
+                RobotWorldMethod::Shah
+            } else {
+                RobotWorldMethod::Li
+            };
+            handeye::robot_world(&b, c, m)
+                .ok()
+                .map(|rw| rw.base_from_target)
+        }
+    };
+    (0..7)
+        .map(|k| {
+            let w1 = board_pose(&p.robots[0], k)?;
+            let w2 = board_pose(&p.robots[1], k)?;
+            Some(w1 * w2.inverse())
+        })
+        .collect()
+}
+
+/// The maximum-likelihood limit (or, for DH errors, the true-flange bound).
+fn limit(p: &Problem, structure: Structure) -> Iso3 {
+    let cam = camera();
+    let mut caps: [Vec<BoardCapture>; 2] = [vec![], vec![]];
+    let mut covs = Vec::new();
+    for (r, robot) in p.robots.iter().enumerate() {
+        for (i, c) in robot.captures.iter().enumerate() {
+            if robot.typos.contains(&i) {
+                continue;
+            }
+            let mut c = c.clone();
+            if structure == Structure::Dh {
+                c.base_from_flange = robot.true_base_from_flange[i];
+            }
+            caps[r].push(c);
+            covs.push(robot.true_cov[i]);
+        }
+    }
+    let options = RefineOptions {
+        noise: if structure == Structure::Dh {
+            NoiseModel::Fixed(NoiseFrame::Base)
+        } else {
+            NoiseModel::PerCapture(covs)
+        },
+        robot_noise: RobotNoise {
+            sigma_t_m: 0.0,
+            sigma_r_rad: 0.0,
+        },
+        capture_chi2_limit: f64::INFINITY,
+        ..Default::default()
+    };
+    let initial = BaseToBaseInitial {
+        flange_from_camera: p.flange_from_camera,
+        base1_from_target: p.base1_from_target,
+        base1_from_base2: p.base1_from_base2,
+    };
+    refine_base_to_base([&cam, &cam], [&caps[0], &caps[1]], &initial, &options)
+        .expect("limit fit")
+        .base1_from_base2
+}
+
+struct CellResult {
+    default_mean: f64,
+    limit_mean: f64,
+    closed_mean: [f64; 7],
+    closed_failed: [usize; 7],
+    true_p95: f64,
+    predicted_p95: f64,
+    coverage: f64,
+    typos_caught: usize,
+    typos_total: usize,
+    clean_rejected: usize,
+}
+
+fn run_cell(
+    structure: Structure,
+    magnitude: f64,
+    n: usize,
+    board: Board,
+    seeds: u64,
+) -> CellResult {
+    let cam = camera();
+    let mut default_sum = 0.0;
+    let mut limit_sum = 0.0;
+    let mut closed_sum = [0.0; 7];
+    let mut closed_failed = [0; 7];
+    let mut all_errors = Vec::new();
+    let mut predicted = 0.0;
+    let mut covered = 0;
+    let mut total_points = 0;
+    let (mut caught, mut typos, mut clean_rejected) = (0, 0, 0);
+    for s in 0..seeds {
+        let seed = s;
+        let p = problem(seed, structure, magnitude, n, board);
+        let points = touch_points(&(p.base1_from_target * p.board_centre));
+        let mean = |t: &Iso3| {
+            let e = touch_errors(t, &p.base1_from_base2, &points);
+            e.iter().sum::<f64>() / e.len() as f64
+        };
+        let inputs: Vec<RobotCaptures<'_>> = p
+            .robots
+            .iter()
+            .map(|r| RobotCaptures {
+                camera: &cam,
+                captures: &r.captures,
+                camera_from_target: &r.camera_from_target,
+            })
+            .collect();
+        let run = estimate_base_to_base([&inputs[0], &inputs[1]], &RefineOptions::default())
+            .expect("default estimator");
+        let est = run.estimate.base1_from_base2;
+        default_sum += mean(&est);
+        let errors = touch_errors(&est, &p.base1_from_base2, &points);
+        let (_, p95) = predicted_error(&run.estimate.covariance, &points, 0.0);
+        predicted += p95;
+        covered += errors.iter().filter(|e| **e <= p95).count();
+        total_points += errors.len();
+        all_errors.extend(errors);
+        for (r, robot) in p.robots.iter().enumerate() {
+            for (i, rej) in run.rejections[r].iter().enumerate() {
+                match (robot.typos.contains(&i), rej.is_some()) {
+                    (true, true) => caught += 1,
+                    (false, true) => clean_rejected += 1,
+                    _ => {}
+                }
+            }
+            typos += robot.typos.len();
+        }
+        limit_sum += mean(&limit(&p, structure));
+        for (k, c) in closed_forms(&p).into_iter().enumerate() {
+            match c {
+                Some(t) => closed_sum[k] += mean(&t),
+                None => {
+                    closed_failed[k] += 1;
+                    closed_sum[k] += f64::INFINITY;
+                }
+            }
+        }
+    }
+    all_errors.sort_by(f64::total_cmp);
+    let k = ((all_errors.len() - 1) as f64 * 0.95).round() as usize;
+    let sf = seeds as f64;
+    CellResult {
+        default_mean: default_sum / sf,
+        limit_mean: limit_sum / sf,
+        closed_mean: closed_sum.map(|v| v / sf),
+        closed_failed,
+        true_p95: all_errors[k],
+        predicted_p95: predicted / sf,
+        coverage: covered as f64 / total_points as f64,
+        typos_caught: caught,
+        typos_total: typos,
+        clean_rejected,
+    }
+}
+
+const MAGNITUDES: [f64; 3] = [0.5, 2.0, 5.0];
+/// Seeds per cell: every cell is a paired comparison (all methods see the
+/// same captures), so a dozen seeds separate the methods; `B2B_STUDY_SEEDS`
+/// runs more.
+fn seeds() -> u64 {
+    std::env::var("B2B_STUDY_SEEDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(12)
+}
+
+/// Runs every cell of one structure, prints its rows, asserts, and returns the
+/// rows' pooled coverage.
+fn study(structure: Structure) {
+    let mut lines = Vec::new();
+    let mut failures = Vec::new();
+    let (mut covered, mut cells) = (0.0, 0.0);
+    for board in [Board::Checkerboard, Board::Charuco] {
+        for n in [15, 30] {
+            for m in MAGNITUDES {
+                let r = run_cell(structure, m, n, board, seeds());
+                let (best_k, best) = r
+                    .closed_mean
+                    .iter()
+                    .enumerate()
+                    .min_by(|a, b| a.1.total_cmp(b.1))
+                    .map(|(k, v)| (k, *v))
+                    .unwrap();
+                let cell = format!(
+                    "{:<14} {:>4.1}x {:>2} {:<6}",
+                    structure.label(),
+                    m,
+                    n,
+                    if board == Board::Checkerboard {
+                        "chess"
+                    } else {
+                        "charuco"
+                    }
+                );
+                lines.push(format!(
+                    "| {cell} | {:.3} | {:.3}{} | {:.3} ({}) | {:.2} | {:.2} | {:.3} / {:.3} | {:.0}% | {} |",
+                    r.default_mean * 1e3,
+                    r.limit_mean * 1e3,
+                    if structure == Structure::Dh { " bound" } else { "" },
+                    best * 1e3,
+                    CLOSED[best_k],
+                    r.default_mean / best,
+                    r.default_mean / r.limit_mean,
+                    r.true_p95 * 1e3,
+                    r.predicted_p95 * 1e3,
+                    r.coverage * 100.0,
+                    if structure == Structure::Typo {
+                        format!("{}/{} typos out, {} clean out", r.typos_caught, r.typos_total, r.clean_rejected)
+                    } else {
+                        format!("{} clean out", r.clean_rejected)
+                    },
+                ));
+                let _ = r.closed_failed;
+                covered += r.coverage;
+                cells += 1.0;
+                // Ahead of every closed form (within 2%: the cells' means
+                // carry sampling noise even when paired).
+                let closed_limit = if structure == Structure::Dh {
+                    1.10
+                } else {
+                    1.02
+                };
+                if r.default_mean > closed_limit * best {
+                    failures.push(format!(
+                        "{cell}: default {:.4} mm > {closed_limit} x best closed form {:.4} mm",
+                        r.default_mean * 1e3,
+                        best * 1e3
+                    ));
+                }
+                if structure != Structure::Dh {
+                    if r.default_mean > 1.25 * r.limit_mean {
+                        failures.push(format!(
+                            "{cell}: default {:.4} mm > 1.25 x limit {:.4} mm",
+                            r.default_mean * 1e3,
+                            r.limit_mean * 1e3
+                        ));
+                    }
+                    // Honest p95: not far below the truth, not more than twice it.
+                    if r.predicted_p95 < 0.75 * r.true_p95 || r.predicted_p95 > 2.0 * r.true_p95 {
+                        failures.push(format!(
+                            "{cell}: predicted p95 {:.4} mm against a true p95 of {:.4} mm",
+                            r.predicted_p95 * 1e3,
+                            r.true_p95 * 1e3
+                        ));
+                    }
+                }
+                if structure == Structure::Typo && r.typos_caught != r.typos_total {
+                    failures.push(format!(
+                        "{cell}: {} of {} typo rows left in",
+                        r.typos_total - r.typos_caught,
+                        r.typos_total
+                    ));
+                }
+                if r.clean_rejected as f64 > 0.25 * seeds() as f64 {
+                    failures.push(format!(
+                        "{cell}: {} clean captures rejected in {} seeds",
+                        r.clean_rejected,
+                        seeds()
+                    ));
+                }
+            }
+        }
+    }
+    eprintln!(
+        "| cell | default mm | limit mm | best closed form mm | default / best | default / limit | true / predicted p95 mm | inside p95 | rejections |"
+    );
+    for l in &lines {
+        eprintln!("{l}");
+    }
+    let pooled = covered / cells;
+    eprintln!(
+        "pooled coverage of the predicted p95: {:.1}%",
+        pooled * 100.0
+    );
+    if structure == Structure::Dh {
+        // Systematic errors move the estimate without showing in the residuals;
+        // the split-half check widens the covariance but cannot see the part
+        // common to all captures. Pinned down: if this starts to hold, the
+        // README's caveat is out of date.
+        assert!(pooled < 0.9, "DH coverage {pooled}: update the README");
+    } else if !(0.90..=0.995).contains(&pooled) {
+        failures.push(format!("pooled coverage {pooled}"));
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn structure_a_base_axes() {
+    study(Structure::BaseAxes);
+}
+
+#[test]
+fn structure_b_tool() {
+    study(Structure::Tool);
+}
+
+#[test]
+fn structure_c_base_origin() {
+    study(Structure::BaseOrigin);
+}
+
+#[test]
+fn structure_d_encoder() {
+    study(Structure::Encoder);
+}
+
+#[test]
+fn structure_e_dh() {
+    study(Structure::Dh);
+}
+
+#[test]
+fn structure_f_typo_rows() {
+    study(Structure::Typo);
+}
