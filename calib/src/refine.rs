@@ -133,6 +133,10 @@ pub struct RefineOptions {
     pub capture_chi2_limit: f64,
     /// Smallest number of corners a capture must keep to stay in the fit.
     pub min_corners_per_capture: usize,
+    /// Also consider full 6x6 noise covariances (21 parameters per robot;
+    /// off by default: over the error-model study the information criterion
+    /// never chose them, and they double the cost of the noise estimate).
+    pub full_noise_shapes: bool,
     /// Rounds of (reject, estimate the noise, fit) after the first fit; they
     /// stop earlier once the inliers settle. 0: the first fit only.
     pub max_rounds: usize,
@@ -155,6 +159,7 @@ impl Default for RefineOptions {
             // chi-square(6) exceeds 40 with probability 3e-7.
             capture_chi2_limit: 40.0,
             min_corners_per_capture: 4,
+            full_noise_shapes: false,
             max_rounds: 5,
             motion: crate::degeneracy::MotionThresholds::default(),
         }
@@ -858,7 +863,7 @@ impl Engine {
                         NoiseShape::Isotropic(NoiseFrame::Flange),
                         NoiseShape::TwoCentres,
                     ];
-                    if mine.len() >= 8 {
+                    if options.full_noise_shapes && mine.len() >= 8 {
                         shapes.push(NoiseShape::Full(NoiseFrame::Base));
                         shapes.push(NoiseShape::Full(NoiseFrame::Flange));
                     }
@@ -1038,7 +1043,7 @@ fn em_components(
         let mut acc = DMatrix::zeros(k, k);
         for (s, r) in spans.iter().zip(&maps) {
             let precision = r.transpose() * r / sigma2 + &prior;
-            let Some(inv) = precision.try_inverse() else {
+            let Some(inv) = precision.cholesky().map(|c| c.inverse()) else {
                 continue;
             };
             let p = DVector::from_column_slice(s.p.as_slice());

@@ -182,9 +182,10 @@ fn base_to_base_on_the_simulated_dataset_is_within_its_predicted_error() {
             report.touch_mean_mm,
             report.within_predicted_p95
         );
-        assert!(dt < 1e-3, "{dt} m");
+        // The README says 0.42 mm and a 0.70 mm touch mean: within 1.5x.
+        assert!(dt < 0.63e-3, "{dt} m");
         assert_eq!(report.n, 25);
-        assert!(report.touch_mean_mm < 1.5);
+        assert!(report.touch_mean_mm < 1.05);
         assert!(report.within_predicted_p95 >= 0.8);
         m2s.push(m2);
     }
