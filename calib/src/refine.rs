@@ -745,9 +745,8 @@ impl Engine {
             for robot in 0..n_robots {
                 let mut chi: Vec<(usize, f64)> = spans
                     .iter()
-                    .filter_map(|(ci, s)| {
-                        (s.robot == robot).then(|| (*ci, self.capture_chi2(*ci, s, options)))
-                    })
+                    .filter(|(_, s)| s.robot == robot)
+                    .map(|(ci, s)| (*ci, self.capture_chi2(*ci, s, options)))
                     .collect();
                 if chi.len() < 6 {
                     continue;
