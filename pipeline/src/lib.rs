@@ -49,18 +49,18 @@ pub enum PipelineError {
     Dataset(#[from] DatasetError),
     #[error("robot {robot}: {source}")]
     Calib { robot: String, source: CalibError },
-    #[error("{0}")]
+    #[error(transparent)]
     Vision(#[from] VisionError),
     #[error("{0}")]
     Unsupported(String),
     /// The pre-fit checks found that one robot's flange poses and board poses do
     /// not belong together ([`b2b_calib::sanity`]): quaternion order, units, rows.
-    #[error("{captures}: robot {robot}: {source}")]
+    #[error("{captures}: robot {robot}: {problem}")]
     CapturesInconsistent {
         robot: String,
         /// The capture list at fault (`.../captures.csv`, or where the captures came from).
         captures: String,
-        source: CalibError,
+        problem: CalibError,
     },
     #[error("{0}")]
     Invalid(String),
@@ -449,10 +449,10 @@ pub fn screen_observations(
         &camera_from_target,
         &SanityOptions::default(),
     )
-    .map_err(|source| PipelineError::CapturesInconsistent {
+    .map_err(|problem| PipelineError::CapturesInconsistent {
         robot: obs.robot.clone(),
         captures: captures.to_owned(),
-        source,
+        problem,
     })?;
     let mut out = obs.clone();
     if !report.suspects.is_empty() {

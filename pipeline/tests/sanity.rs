@@ -124,7 +124,7 @@ pub fn fake_png(path: &Path, width: u32, height: u32) {
 fn sanity_error(e: PipelineError) -> (String, CalibError) {
     let msg = e.to_string();
     match e {
-        PipelineError::CapturesInconsistent { source, .. } => (msg, source),
+        PipelineError::CapturesInconsistent { problem, .. } => (msg, problem),
         other => panic!("expected CapturesInconsistent, got {other:?}"),
     }
 }
