@@ -235,12 +235,15 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
+/// One pair's comparison: (i, j, angle score, angle diff, pitch score and diff
+/// when compared).
+type PairRow = (usize, usize, f64, f64, Option<(f64, f64)>);
+
 /// The per-pair comparison of one hypothesis about the data.
 #[derive(Debug, Clone)]
 struct PairTable {
     n: usize,
-    /// (i, j, angle score, angle diff, pitch score and diff when compared)
-    pairs: Vec<(usize, usize, f64, f64, Option<(f64, f64)>)>,
+    pairs: Vec<PairRow>,
 }
 
 impl PairTable {
