@@ -314,3 +314,30 @@ pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionE
     };
     GrayImage::from_mat(gray)
 }
+
+#[cfg(test)]
+mod header_tests {
+    use super::*;
+
+    #[test]
+    fn png_and_jpeg_headers_give_the_size_without_decoding() {
+        let mut png = vec![0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A, 0, 0, 0, 13];
+        png.extend_from_slice(b"IHDR");
+        png.extend_from_slice(&32000u32.to_be_bytes());
+        png.extend_from_slice(&24000u32.to_be_bytes());
+        assert_eq!(header_size(&png), Some((32000, 24000)));
+        // SOI, an APP0 segment (16 bytes), a fill byte, then SOF2 (progressive).
+        let mut jpeg = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x10];
+        jpeg.extend_from_slice(&[0u8; 14]);
+        jpeg.extend_from_slice(&[0xFF, 0xFF, 0xC2, 0x00, 0x11, 8, 0x01, 0xE0, 0x02, 0x80]);
+        assert_eq!(header_size(&jpeg), Some((640, 480)));
+        // A DHT segment (0xC4) is not a frame header; a scan before any frame is refused.
+        let no_sof = [0xFF, 0xD8, 0xFF, 0xC4, 0x00, 0x02, 0xFF, 0xDA, 0x00, 0x02];
+        assert_eq!(header_size(&no_sof), None);
+        assert_eq!(header_size(b"not an image"), None);
+        assert_eq!(header_size(&png[..20]), None);
+        let err = decode_gray(&png, "huge.png").unwrap_err();
+        assert!(matches!(err, VisionError::ImageTooLarge { .. }), "{err:?}");
+        assert!(err.to_string().contains("32000x24000"), "{err}");
+    }
+}
