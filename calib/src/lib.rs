@@ -15,6 +15,8 @@
 //! - [`refine`]: the joint reprojection-error refinement of one robot, seeded by a
 //!   closed form, with robust loss, MAD outlier rejection and covariance.
 //! - [`base_to_base`]: both robots as one problem, with `base1_from_base2`.
+//! - [`sanity`]: pre-fit checks that flange and board poses belong together
+//!   (quaternion order, units, mismatched rows), from invariants of AX = XB.
 //! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
 //! - [`synth`]: synthetic problems with known truth, for tests and benchmarks.
 //! - [`metrics`]: ISO 9283 accuracy and repeatability, touch-point verification.
@@ -28,6 +30,7 @@ pub mod metrics;
 pub mod pose;
 pub mod procrustes;
 pub mod refine;
+pub mod sanity;
 pub mod synth;
 
 mod error;

@@ -27,6 +27,7 @@ use b2b_calib::estimate::{Rejection, RobotCaptures, estimate_base_to_base, estim
 use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
 use b2b_calib::refine::{BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye};
+use b2b_calib::sanity::{SanityOptions, SanityReport, check_pose_pairs};
 use b2b_calib::{CalibError, Iso3};
 use b2b_dataset::{Dataset, DatasetError, Target, TouchPair};
 use b2b_protocol::{
@@ -46,10 +47,19 @@ pub enum PipelineError {
     Dataset(#[from] DatasetError),
     #[error("robot {robot}: {source}")]
     Calib { robot: String, source: CalibError },
-    #[error("{0}")]
+    #[error(transparent)]
     Vision(#[from] VisionError),
     #[error("{0}")]
     Unsupported(String),
+    /// The pre-fit checks found that one robot's flange poses and board poses do
+    /// not belong together ([`b2b_calib::sanity`]): quaternion order, units, rows.
+    #[error("{captures}: robot {robot}: {problem}")]
+    CapturesInconsistent {
+        robot: String,
+        /// The capture list at fault (`.../captures.csv`, or where the captures came from).
+        captures: String,
+        problem: CalibError,
+    },
     #[error("{0}")]
     Invalid(String),
 }
@@ -341,9 +351,10 @@ pub fn observe_capture(
             "row has neither an image nor T_camera_target".into(),
         ));
     };
-    let (detection, pose) = b2b_vision::load_gray(&path)
-        .and_then(|img| setup.target.detect(&img, &setup.camera))
-        .map_err(|e| reject(e.to_string()))?;
+    let (detection, pose) =
+        b2b_vision::load_gray_sized(&path, setup.camera.width, setup.camera.height)
+            .and_then(|img| setup.target.detect(&img, &setup.camera))
+            .map_err(|e| reject(e.to_string()))?;
     Ok(Observation {
         row: cap.row,
         image,
@@ -366,6 +377,7 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
     let data = ds
         .robot(robot)
         .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+    check_image_sizes(ds, robot, &setup.camera)?;
     let mut observations = Vec::new();
     let mut rejected = Vec::new();
     for cap in &data.captures {
@@ -377,13 +389,96 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
             }
         }
     }
-    Ok(RobotObservations {
+    let obs = RobotObservations {
         robot: robot.to_owned(),
         camera: setup.camera,
         observations,
         rejected,
         detect_ms: start.elapsed().as_secs_f64() * 1e3,
-    })
+    };
+    let captures = ds.root.join(robot).join(b2b_dataset::CAPTURES_FILE);
+    screen_observations(&obs, &captures.display().to_string()).map(|(o, _)| o)
+}
+
+/// Checks every colour and depth image of one robot against its camera intrinsics'
+/// width and height (and the pixel cap) from the file headers, before anything is
+/// decoded. A mismatch is an error for the whole data set: the intrinsics do not
+/// belong to these images.
+pub fn check_image_sizes(
+    ds: &Dataset,
+    robot: &str,
+    camera: &CameraModel,
+) -> Result<(), PipelineError> {
+    let Some(data) = ds.robot(robot) else {
+        return Ok(());
+    };
+    for cap in &data.captures {
+        for path in [ds.image_path(robot, cap), ds.depth_path(robot, cap)]
+            .into_iter()
+            .flatten()
+        {
+            b2b_vision::check_image_file(&path, camera.width, camera.height)?;
+        }
+    }
+    Ok(())
+}
+
+/// Runs the pre-fit consistency checks ([`b2b_calib::sanity::check_pose_pairs`]) on
+/// one robot's observations. A data-set-wide disagreement (quaternion order, a unit
+/// error, flange and board poses that do not belong together) is an error naming
+/// `captures` (the capture list, for the message); captures that disagree with most
+/// others are moved to the rejected list with the reason, and the rest returned.
+pub fn screen_observations(
+    obs: &RobotObservations,
+    captures: &str,
+) -> Result<(RobotObservations, SanityReport), PipelineError> {
+    let base_from_flange: Vec<Iso3> = obs
+        .observations
+        .iter()
+        .map(|o| o.board.base_from_flange)
+        .collect();
+    let camera_from_target: Vec<Iso3> = obs
+        .observations
+        .iter()
+        .map(|o| o.camera_from_target)
+        .collect();
+    let report = check_pose_pairs(
+        &base_from_flange,
+        &camera_from_target,
+        &SanityOptions::default(),
+    )
+    .map_err(|problem| PipelineError::CapturesInconsistent {
+        robot: obs.robot.clone(),
+        captures: captures.to_owned(),
+        problem,
+    })?;
+    let mut out = obs.clone();
+    if !report.suspects.is_empty() {
+        let bad: Vec<usize> = report.suspects.iter().map(|s| s.index).collect();
+        out.observations = obs
+            .observations
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| !bad.contains(k))
+            .map(|(_, o)| o.clone())
+            .collect();
+        for s in &report.suspects {
+            let o = &obs.observations[s.index];
+            tracing::warn!(
+                robot = obs.robot.as_str(),
+                row = o.row,
+                "capture rejected: {}",
+                s.reason
+            );
+            out.rejected.push(RejectedCapture {
+                robot: obs.robot.clone(),
+                image: o.image.clone(),
+                row: Some(o.row),
+                reason: s.reason.clone(),
+            });
+        }
+    }
+    Ok((out, report))
 }
 
 fn covariance6(m: &Matrix6<f64>) -> [[f64; 6]; 6] {
@@ -412,6 +507,8 @@ pub fn hand_eye(
     options: &RefineOptions,
 ) -> Result<HandEyeRun, PipelineError> {
     let start = Instant::now();
+    let (obs, _) = screen_observations(obs, &format!("captures of robot {}", obs.robot))?;
+    let obs = &obs;
     let robot = obs.robot.as_str();
     let base_from_flange: Vec<Iso3> = obs
         .observations
@@ -617,9 +714,13 @@ pub fn base_to_base_from_observations_with(
             "method rgbd needs the images and depth of a dataset (coordinator calibrate --method rgbd); captures on the bus carry neither".into(),
         ));
     }
-    let [obs1, obs2] = robots;
     let solve_start = Instant::now();
-    let inputs = [obs1, obs2].map(|o| {
+    let [obs1, obs2] = robots;
+    let (obs1, _) = screen_observations(obs1, &format!("captures of robot {}", obs1.robot))?;
+    let (obs2, _) = screen_observations(obs2, &format!("captures of robot {}", obs2.robot))?;
+    let screened = [&obs1, &obs2];
+    let (obs1, obs2) = (&obs1, &obs2);
+    let inputs = screened.map(|o| {
         (
             o.observations
                 .iter()
@@ -632,7 +733,7 @@ pub fn base_to_base_from_observations_with(
         )
     });
     let captures = [0, 1].map(|r| RobotCaptures {
-        camera: &robots[r].camera,
+        camera: &screened[r].camera,
         captures: &inputs[r].0,
         camera_from_target: &inputs[r].1,
     });

@@ -22,6 +22,30 @@ pub enum VisionError {
     /// Some other pixel format (float, signed, an odd channel count).
     #[error("{source_name}: unsupported pixel format: {what}")]
     UnsupportedImage { source_name: String, what: String },
+    /// An image header claiming more pixels than anything here decodes.
+    #[error(
+        "{source_name}: the image header claims {width}x{height} pixels, more than the {max_pixels} \
+         decoded at most (or zero): a corrupt or foreign file; refused before decoding"
+    )]
+    ImageTooLarge {
+        source_name: String,
+        width: u32,
+        height: u32,
+        max_pixels: u64,
+    },
+    /// An image whose size differs from the camera intrinsics' width and height.
+    #[error(
+        "{source_name}: the image is {width}x{height} but the camera intrinsics are for \
+         {expected_width}x{expected_height}: images from another camera or resolution, or the \
+         intrinsics of another stream?"
+    )]
+    ImageSizeMismatch {
+        source_name: String,
+        width: u32,
+        height: u32,
+        expected_width: u32,
+        expected_height: u32,
+    },
     /// A zero-sized image or raw buffer whose length does not match its size.
     #[error("invalid image: {0}")]
     InvalidImage(String),

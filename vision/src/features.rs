@@ -395,7 +395,8 @@ impl DepthImage {
     }
 }
 
-/// Reads a single-channel 16-bit depth PNG; 8-bit or colour files are refused.
+/// Reads a single-channel 16-bit depth PNG; 8-bit or colour files are refused, and
+/// a header claiming more than [`crate::MAX_IMAGE_PIXELS`] is refused before decoding.
 pub fn load_depth(path: &Path) -> Result<DepthImage, VisionError> {
     let bytes = std::fs::read(path).map_err(|source| VisionError::Io {
         path: path.to_owned(),
@@ -407,6 +408,9 @@ pub fn load_depth(path: &Path) -> Result<DepthImage, VisionError> {
             source_name: name,
             reason: "the file is empty".into(),
         });
+    }
+    if let Some(size) = crate::image::header_size(&bytes) {
+        crate::image::check_stated_size(&name, size, None)?;
     }
     let buf = Vector::<u8>::from_slice(&bytes);
     let mat = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_UNCHANGED).map_err(|e| {

@@ -116,18 +116,151 @@ impl GrayImage {
     }
 }
 
+/// Largest image decoded, in pixels: 50 Mpx, several times any camera of the
+/// platform. A header claiming more is refused before decoding (a PNG that claims
+/// 32000x32000 pixels would otherwise take gigabytes and minutes to decode).
+pub const MAX_IMAGE_PIXELS: u64 = 50_000_000;
+
+/// How many bytes of a file [`image_file_size`] reads to find the header.
+const HEADER_READ_LIMIT: u64 = 256 * 1024;
+
+/// Width and height as an encoded image's header states them, without decoding:
+/// PNG's IHDR (bytes 16..24) or a JPEG's SOF segment. `None` when the bytes are
+/// neither, or the JPEG's SOF is not within `bytes`.
+pub fn header_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
+    if bytes.len() >= 24 && bytes[..8] == PNG_SIGNATURE && &bytes[12..16] == b"IHDR" {
+        let be =
+            |k: usize| u32::from_be_bytes([bytes[k], bytes[k + 1], bytes[k + 2], bytes[k + 3]]);
+        return Some((be(16), be(20)));
+    }
+    if bytes.len() >= 4 && bytes[0] == 0xFF && bytes[1] == 0xD8 {
+        let mut k = 2;
+        while k + 4 <= bytes.len() {
+            if bytes[k] != 0xFF {
+                return None;
+            }
+            let marker = bytes[k + 1];
+            match marker {
+                // Fill byte before a marker.
+                0xFF => {
+                    k += 1;
+                    continue;
+                }
+                // Stand-alone markers (no length).
+                0x01 | 0xD0..=0xD7 => {
+                    k += 2;
+                    continue;
+                }
+                // End of image or start of scan before any frame header.
+                0xD9 | 0xDA => return None,
+                _ => {}
+            }
+            let len = usize::from(u16::from_be_bytes([bytes[k + 2], bytes[k + 3]]));
+            let is_sof = matches!(marker, 0xC0..=0xCF) && !matches!(marker, 0xC4 | 0xC8 | 0xCC);
+            if is_sof {
+                if k + 9 > bytes.len() {
+                    return None;
+                }
+                let h = u16::from_be_bytes([bytes[k + 5], bytes[k + 6]]);
+                let w = u16::from_be_bytes([bytes[k + 7], bytes[k + 8]]);
+                return Some((u32::from(w), u32::from(h)));
+            }
+            if len < 2 {
+                return None;
+            }
+            k += 2 + len;
+        }
+    }
+    None
+}
+
+/// The size an image file's header states (see [`header_size`]), reading at most
+/// its first 256 KiB; `None` when the header is not PNG or JPEG or not found there.
+pub fn image_file_size(path: &Path) -> Result<Option<(u32, u32)>, VisionError> {
+    use std::io::Read;
+    let io = |source| VisionError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut head = Vec::new();
+    file.take(HEADER_READ_LIMIT)
+        .read_to_end(&mut head)
+        .map_err(io)?;
+    Ok(header_size(&head))
+}
+
+/// Refuses a stated size above [`MAX_IMAGE_PIXELS`], or different from `expected`
+/// (the camera intrinsics' width and height) when given.
+pub(crate) fn check_stated_size(
+    source_name: &str,
+    (width, height): (u32, u32),
+    expected: Option<(u32, u32)>,
+) -> Result<(), VisionError> {
+    if u64::from(width) * u64::from(height) > MAX_IMAGE_PIXELS || width == 0 || height == 0 {
+        return Err(VisionError::ImageTooLarge {
+            source_name: source_name.to_owned(),
+            width,
+            height,
+            max_pixels: MAX_IMAGE_PIXELS,
+        });
+    }
+    if let Some((ew, eh)) = expected
+        && (width, height) != (ew, eh)
+    {
+        return Err(VisionError::ImageSizeMismatch {
+            source_name: source_name.to_owned(),
+            width,
+            height,
+            expected_width: ew,
+            expected_height: eh,
+        });
+    }
+    Ok(())
+}
+
+/// Checks an image file's header against the camera intrinsics' size and the pixel
+/// cap without decoding it. A file whose header is neither PNG nor JPEG passes here
+/// (decoding it will say what it is).
+pub fn check_image_file(path: &Path, width: u32, height: u32) -> Result<(), VisionError> {
+    match image_file_size(path)? {
+        Some(size) => check_stated_size(&path.display().to_string(), size, Some((width, height))),
+        None => Ok(()),
+    }
+}
+
 /// Loads an image file as 8-bit grey. Colour images are converted (BGR weights);
-/// 16-bit images are refused rather than rescaled.
+/// 16-bit images are refused rather than rescaled. A header claiming more than
+/// [`MAX_IMAGE_PIXELS`] is refused before decoding.
 pub fn load_gray(path: &Path) -> Result<GrayImage, VisionError> {
+    load_gray_checked(path, None)
+}
+
+/// [`load_gray`] for an image that must be `width` x `height` (the camera
+/// intrinsics' size): the header is checked before decoding, and the decoded
+/// image again.
+pub fn load_gray_sized(path: &Path, width: u32, height: u32) -> Result<GrayImage, VisionError> {
+    load_gray_checked(path, Some((width, height)))
+}
+
+fn load_gray_checked(path: &Path, expected: Option<(u32, u32)>) -> Result<GrayImage, VisionError> {
     let bytes = std::fs::read(path).map_err(|source| VisionError::Io {
         path: path.to_owned(),
         source,
     })?;
-    decode_gray(&bytes, &path.display().to_string())
+    let name = path.display().to_string();
+    if let Some(size) = header_size(&bytes) {
+        check_stated_size(&name, size, expected)?;
+    }
+    let img = decode_gray(&bytes, &name)?;
+    check_stated_size(&name, (img.width(), img.height()), expected)?;
+    Ok(img)
 }
 
 /// Decodes an encoded image (PNG, JPEG, ...) held in memory as 8-bit grey;
 /// `source_name` is used in error messages.
+/// A header claiming more than [`MAX_IMAGE_PIXELS`] is refused before decoding.
 pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionError> {
     let corrupt = |reason: &str| VisionError::CorruptImage {
         source_name: source_name.to_owned(),
@@ -135,6 +268,9 @@ pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionE
     };
     if bytes.is_empty() {
         return Err(corrupt("the file is empty"));
+    }
+    if let Some(size) = header_size(bytes) {
+        check_stated_size(source_name, size, None)?;
     }
     let buf = Vector::<u8>::from_slice(bytes);
     // OpenCV's decoders report failure as an empty Mat, or sometimes throw.
@@ -177,4 +313,31 @@ pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionE
         }
     };
     GrayImage::from_mat(gray)
+}
+
+#[cfg(test)]
+mod header_tests {
+    use super::*;
+
+    #[test]
+    fn png_and_jpeg_headers_give_the_size_without_decoding() {
+        let mut png = vec![0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A, 0, 0, 0, 13];
+        png.extend_from_slice(b"IHDR");
+        png.extend_from_slice(&32000u32.to_be_bytes());
+        png.extend_from_slice(&24000u32.to_be_bytes());
+        assert_eq!(header_size(&png), Some((32000, 24000)));
+        // SOI, an APP0 segment (16 bytes), a fill byte, then SOF2 (progressive).
+        let mut jpeg = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x10];
+        jpeg.extend_from_slice(&[0u8; 14]);
+        jpeg.extend_from_slice(&[0xFF, 0xFF, 0xC2, 0x00, 0x11, 8, 0x01, 0xE0, 0x02, 0x80]);
+        assert_eq!(header_size(&jpeg), Some((640, 480)));
+        // A DHT segment (0xC4) is not a frame header; a scan before any frame is refused.
+        let no_sof = [0xFF, 0xD8, 0xFF, 0xC4, 0x00, 0x02, 0xFF, 0xDA, 0x00, 0x02];
+        assert_eq!(header_size(&no_sof), None);
+        assert_eq!(header_size(b"not an image"), None);
+        assert_eq!(header_size(&png[..20]), None);
+        let err = decode_gray(&png, "huge.png").unwrap_err();
+        assert!(matches!(err, VisionError::ImageTooLarge { .. }), "{err:?}");
+        assert!(err.to_string().contains("32000x24000"), "{err}");
+    }
 }

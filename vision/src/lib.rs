@@ -104,7 +104,10 @@ pub use checkerboard::{
     detect_checkerboard_with,
 };
 pub use error::VisionError;
-pub use image::{GrayImage, decode_gray, load_gray};
+pub use image::{
+    GrayImage, MAX_IMAGE_PIXELS, check_image_file, decode_gray, header_size, image_file_size,
+    load_gray, load_gray_sized,
+};
 pub use intrinsics::{
     CalibrationTarget, IntrinsicsOptions, IntrinsicsResult, calibrate_intrinsics,
     calibrate_intrinsics_from_dir,
