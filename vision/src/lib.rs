@@ -106,8 +106,8 @@ pub use checkerboard::{
 pub use error::VisionError;
 pub use image::{GrayImage, decode_gray, load_gray};
 pub use intrinsics::{
-    CalibrationTarget, IntrinsicsOptions, IntrinsicsResult, calibrate_intrinsics,
-    calibrate_intrinsics_from_dir,
+    CalibrationTarget, DistortionTerms, IntrinsicsOptions, IntrinsicsResult,
+    calibrate_from_detections, calibrate_intrinsics, calibrate_intrinsics_from_dir,
 };
 pub use markers::{
     ArucoGridSpec, CharucoSpec, MarkerDictionary, detect_aruco_grid, detect_charuco, detect_marker,
