@@ -2,7 +2,10 @@
 //!
 //! Goal (issue: foundation): the base-to-base refinement over 2 x 30 captures x
 //! 54 corners in <= 50 ms; with both cameras' intrinsics refined too (issue #18:
-//! intrinsics estimated when a dataset gives none), at most 200 ms more. Run `cargo bench -p b2b-calib --bench refine` for
+//! intrinsics estimated when a dataset gives none), at most 200 ms more for the
+//! whole estimate. Measured with `-- --quick` on the shared 2-core machine (load
+//! 4.5-7): 45 ms without, 130 ms with the intrinsics; the pipeline's initial
+//! `calibrateCamera` fits add ~40 ms per robot (`pipeline/tests/intrinsics.rs`). Run `cargo bench -p b2b-calib --bench refine` for
 //! numbers; `cargo test --benches` runs each once as a smoke test.
 
 use b2b_calib::base_to_base::{BaseToBaseInitial, perturb_initial, refine_base_to_base};

@@ -478,8 +478,8 @@ fn guess_camera(width: u32, height: u32) -> Result<CameraModel, PipelineError> {
 /// The most views the initial intrinsics fit takes (spread over the captures in
 /// order). OpenCV's `calibrateCamera` solves for every view's pose with the camera
 /// in one dense Levenberg–Marquardt problem, so an iteration costs O(views³):
-/// 30 views of 54 corners took 0.5 s here, 12 views 65-110 ms, 8 views less again
-/// (and 8 suffice for `k1 k2 p1 p2`, [`initial_distortion_terms`]). The joint refinement
+/// 30 views of 54 corners took 0.5 s here, 12 views 65-110 ms, 8 views 40 ms (and
+/// 8 suffice for `k1 k2 p1 p2`, [`initial_distortion_terms`]). The joint refinement
 /// then fits the camera to every capture.
 pub const MAX_INITIAL_VIEWS: usize = 8;
 
