@@ -1,7 +1,11 @@
 //! The joint refinements on realistic problem sizes.
 //!
 //! Goal (issue: foundation): the base-to-base refinement over 2 x 30 captures x
-//! 54 corners in <= 50 ms. Run `cargo bench -p b2b-calib --bench refine` for
+//! 54 corners in <= 50 ms; with both cameras' intrinsics refined too (issue #18:
+//! intrinsics estimated when a dataset gives none), at most 200 ms more for the
+//! whole estimate. Measured with `-- --quick` on the shared 2-core machine (load
+//! 4.5-7): 45 ms without, 130 ms with the intrinsics; the pipeline's initial
+//! `calibrateCamera` fits add ~40 ms per robot (`pipeline/tests/intrinsics.rs`). Run `cargo bench -p b2b-calib --bench refine` for
 //! numbers; `cargo test --benches` runs each once as a smoke test.
 
 use b2b_calib::base_to_base::{BaseToBaseInitial, perturb_initial, refine_base_to_base};
@@ -50,6 +54,34 @@ fn bench(c: &mut Criterion) {
                 [&c1, &c2],
                 black_box(&initial),
                 &opts,
+            )
+            .expect("converges")
+        })
+    });
+
+    // The same problem with both cameras' nine intrinsics refined jointly, from
+    // cameras 1 % off in focal length and 2 px off in the principal point (what
+    // the pipeline does when a dataset gives no intrinsics, after its initial
+    // fit, or with --refine-intrinsics).
+    let mut wrong = [cfg.camera.clone(), cfg.camera.clone()];
+    for (k, c) in wrong.iter_mut().enumerate() {
+        let s = if k == 0 { 1.0 } else { -1.0 };
+        c.fx *= 1.0 + 0.01 * s;
+        c.fy *= 1.0 + 0.01 * s;
+        c.cx += 2.0 * s;
+        c.cy -= 2.0 * s;
+    }
+    let with_intrinsics = RefineOptions {
+        refine_intrinsics: true,
+        ..RefineOptions::default()
+    };
+    c.bench_function("base_to_base_refine_2x30x54_intrinsics", |b| {
+        b.iter(|| {
+            refine_base_to_base(
+                [&wrong[0], &wrong[1]],
+                [&c1, &c2],
+                black_box(&initial),
+                &with_intrinsics,
             )
             .expect("converges")
         })

@@ -18,7 +18,7 @@
 
 pub mod rgbd;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::time::Instant;
 
@@ -35,8 +35,8 @@ use b2b_protocol::{
     PredictedError, RESULT_FORMAT, RejectedCapture, Timings, VerifyReport,
 };
 use b2b_vision::{
-    ArucoGridSpec, BoardDetection, CharucoSpec, CheckerboardSpec, MarkerDictionary,
-    MultimarkerConfig, PoseEstimate, VisionError,
+    ArucoGridSpec, BoardDetection, CharucoSpec, CheckerboardSpec, DistortionTerms, GrayImage,
+    IntrinsicsOptions, MarkerDictionary, MultimarkerConfig, PoseEstimate, VisionError,
 };
 use nalgebra::{Matrix6, Point3};
 
@@ -60,6 +60,17 @@ pub enum PipelineError {
         captures: String,
         problem: CalibError,
     },
+    /// A robot without a `camera` block, in a command that cannot estimate one.
+    #[error(
+        "robot '{robot}' has no camera intrinsics in {}: this command needs them given \
+         (`coordinator calibrate --method board|multimarker` and `agent handeye` estimate \
+         them from the captures' images)",
+        manifest.display()
+    )]
+    NoIntrinsics { robot: String, manifest: PathBuf },
+    /// A robot without a `camera` block whose captures do not allow estimating one.
+    #[error("robot '{robot}': cannot estimate the camera intrinsics from its captures: {reason}")]
+    IntrinsicsEstimation { robot: String, reason: String },
     #[error("{0}")]
     Invalid(String),
 }
@@ -125,25 +136,45 @@ pub struct Observation {
 #[derive(Debug, Clone)]
 pub struct RobotObservations {
     pub robot: String,
+    /// The dataset's camera, or the initial estimate when it had none.
     pub camera: CameraModel,
     pub observations: Vec<Observation>,
     pub rejected: Vec<RejectedCapture>,
     pub detect_ms: f64,
+    /// `Some` when the dataset gave no intrinsics and `camera` was estimated from
+    /// these captures' images; the hand-eye and base-to-base fits then refine it
+    /// jointly (see [`observe_robot`]).
+    pub estimated_intrinsics: Option<EstimatedIntrinsics>,
 }
 
-fn camera_of(ds: &Dataset, robot: &str) -> Result<CameraModel, PipelineError> {
+/// How a robot's intrinsics were estimated from its own captures.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EstimatedIntrinsics {
+    /// The distortion terms of the initial fit (the others started at zero).
+    pub terms: DistortionTerms,
+    /// Images in the initial fit.
+    pub images_used: usize,
+    /// Reprojection RMS of the initial fit (px).
+    pub rms_px: f64,
+    /// Time the initial fit took (ms), included in `detect_ms`.
+    pub fit_ms: f64,
+}
+
+/// The `camera` block of a robot; `None` when the dataset leaves it out.
+fn camera_of(ds: &Dataset, robot: &str) -> Result<Option<CameraModel>, PipelineError> {
     let m = ds.robot_manifest(robot).ok_or_else(|| {
         PipelineError::Invalid(format!(
             "robot '{robot}' is not in {}",
             ds.root.join("dataset.json").display()
         ))
     })?;
-    let c = m.camera.as_ref().ok_or_else(|| {
-        PipelineError::Unsupported(format!(
-            "robot '{robot}' has no camera intrinsics in dataset.json; estimating them from calibration images is not implemented yet"
-        ))
-    })?;
-    CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist).map_err(calib(robot))
+    m.camera
+        .as_ref()
+        .map(|c| {
+            CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist)
+                .map_err(calib(robot))
+        })
+        .transpose()
 }
 
 /// The dataset's target, ready for detection.
@@ -280,6 +311,40 @@ impl TargetSpec {
         let pose = b2b_vision::board_pose(&det, camera)?;
         Ok((det, pose))
     }
+
+    /// Finds the target's corners in an image. `camera` may be a rough guess: the
+    /// checkerboard and ArUco grid detectors do not use it, ChArUco uses it to
+    /// predict corners from the markers (then snaps them to the image), and a
+    /// multimarker set's corners are the markers' own.
+    pub fn detect_corners(
+        &self,
+        img: &b2b_vision::GrayImage,
+        camera: &CameraModel,
+    ) -> Result<BoardDetection, VisionError> {
+        match self {
+            TargetSpec::Checkerboard(s) => b2b_vision::detect_checkerboard(img, s),
+            TargetSpec::Charuco(s) => b2b_vision::detect_charuco(img, s, camera),
+            TargetSpec::ArucoGrid(s) => b2b_vision::detect_aruco_grid(img, s),
+            TargetSpec::Multimarker { config, dictionary } => {
+                b2b_vision::detect_multimarker(img, config, dictionary, camera).map(|m| m.detection)
+            }
+        }
+    }
+
+    /// `camera_from_target` of corners found by [`TargetSpec::detect_corners`].
+    pub fn pose(
+        &self,
+        det: &BoardDetection,
+        camera: &CameraModel,
+    ) -> Result<PoseEstimate, VisionError> {
+        match self {
+            TargetSpec::Multimarker { .. } => {
+                b2b_vision::multimarker_pose(&det.target_points, &det.pixels, camera)
+                    .map(|(pose, _)| pose)
+            }
+            _ => b2b_vision::board_pose(det, camera),
+        }
+    }
 }
 
 /// What the detector needs to know about one robot of a dataset.
@@ -292,9 +357,13 @@ pub struct RobotSetup {
 }
 
 impl RobotSetup {
-    /// The camera and target of `robot` in a dataset.
+    /// The camera and target of `robot` in a dataset; a robot without intrinsics is
+    /// [`PipelineError::NoIntrinsics`] (only [`observe_robot`] estimates them).
     pub fn from_dataset(ds: &Dataset, robot: &str) -> Result<Self, PipelineError> {
-        let camera = camera_of(ds, robot)?;
+        let camera = camera_of(ds, robot)?.ok_or_else(|| PipelineError::NoIntrinsics {
+            robot: robot.to_owned(),
+            manifest: ds.root.join("dataset.json"),
+        })?;
         let target = TargetSpec::from_dataset(ds)?;
         let board_points = target.all_points();
         Ok(RobotSetup {
@@ -371,8 +440,17 @@ pub fn observe_capture(
 
 /// Detects the board in every capture of one robot and fits its pose; failures
 /// become rejected captures with a reason, never silent drops.
+///
+/// A robot without a `camera` block in `dataset.json` gets one estimated from
+/// these same captures (see [`observe_uncalibrated`]); the result says so in
+/// [`RobotObservations::estimated_intrinsics`].
 pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, PipelineError> {
     let start = Instant::now();
+    let captures = ds.root.join(robot).join(b2b_dataset::CAPTURES_FILE);
+    if camera_of(ds, robot)?.is_none() {
+        let obs = observe_uncalibrated(ds, robot, TargetSpec::from_dataset(ds)?, start)?;
+        return screen_observations(&obs, &captures.display().to_string()).map(|(o, _)| o);
+    }
     let setup = RobotSetup::from_dataset(ds, robot)?;
     let data = ds
         .robot(robot)
@@ -395,8 +473,8 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
         observations,
         rejected,
         detect_ms: start.elapsed().as_secs_f64() * 1e3,
+        estimated_intrinsics: None,
     };
-    let captures = ds.root.join(robot).join(b2b_dataset::CAPTURES_FILE);
     screen_observations(&obs, &captures.display().to_string()).map(|(o, _)| o)
 }
 
@@ -481,6 +559,243 @@ pub fn screen_observations(
     Ok((out, report))
 }
 
+/// The starting camera of the detection before any intrinsics are known: focal
+/// length = the image width (a 53° horizontal field of view, between a RealSense
+/// colour camera's 69° and a narrow lens), principal point at the centre, no
+/// distortion.
+fn guess_camera(width: u32, height: u32) -> Result<CameraModel, PipelineError> {
+    let (w, h) = (f64::from(width), f64::from(height));
+    CameraModel::new(width, height, [w, w, (w - 1.0) / 2.0, (h - 1.0) / 2.0], &[])
+        .map_err(|e| PipelineError::Invalid(format!("{width}x{height} image: {e}")))
+}
+
+/// The most views the initial intrinsics fit takes (spread over the captures in
+/// order). OpenCV's `calibrateCamera` solves for every view's pose with the camera
+/// in one dense Levenberg–Marquardt problem, so an iteration costs O(views³):
+/// 30 views of 54 corners took 0.5 s here, 12 views 65-110 ms, 8 views 40 ms (and
+/// 8 suffice for `k1 k2 p1 p2`, [`initial_distortion_terms`]). The joint refinement
+/// then fits the camera to every capture.
+pub const MAX_INITIAL_VIEWS: usize = 8;
+
+/// The distortion terms the initial intrinsics fit estimates from `views` images
+/// of the target (the rest start at zero).
+///
+/// - `k3` is never fitted at first: the r⁶ term only differs from `k1`, `k2` near
+///   the image corners, which a board seen from a robot's working distances seldom
+///   reaches, so `k3` is nearly collinear with `k2` and absorbs noise (OpenCV's own
+///   advice for non-fisheye lenses; RealSense colour lenses are mild, their factory
+///   intrinsics often carry no distortion at all).
+/// - `p1`, `p2` (decentring) trade off against the principal point: a shift of
+///   `cx` and a tangential term move the corners near the centre alike, and only
+///   views tilted in several directions separate them. From 8 views on (ViSP's
+///   Franka set has 8) they are fitted; below, they start at zero.
+/// - `k2` needs corners over a range of radii from several views: from 5 views;
+///   with 4 (the fewest accepted) only `k1`.
+///
+/// This is only the start. The joint refinement that follows
+/// ([`RefineOptions::refine_intrinsics`]) estimates all nine intrinsics
+/// (`fx, fy, cx, cy, k1, k2, p1, p2, k3`) together with the hand-eye (and
+/// base-to-base): the engine has no way to hold single terms fixed, but it
+/// constrains the camera far more than `calibrateCamera` does (one hand-eye
+/// instead of six pose unknowns per view), and a poorly determined `k3` moves
+/// the projection only where no corner was seen. Its uncertainty is in the
+/// poses' covariance.
+pub fn initial_distortion_terms(views: usize) -> DistortionTerms {
+    match views {
+        0..=4 => DistortionTerms::K1,
+        5..=7 => DistortionTerms::K1K2,
+        _ => DistortionTerms::K1K2P1P2,
+    }
+}
+
+/// [`observe_robot`] for a robot whose dataset gives no intrinsics: detect the
+/// target's corners in every image without a camera model (a guess where the
+/// detector wants one, [`guess_camera`]), fit the intrinsics to those corners
+/// (OpenCV's `calibrateCamera`, [`b2b_vision::calibrate_from_detections`], with
+/// [`initial_distortion_terms`]), then fit each capture's pose with that camera.
+/// ChArUco corners, which the detector predicts through the camera, are detected
+/// again with the estimate before the poses. Pose-only rows (`T_camera_target`
+/// without an image) are rejected: their pixels would have to be made with the
+/// very intrinsics that are missing.
+fn observe_uncalibrated(
+    ds: &Dataset,
+    robot: &str,
+    target: TargetSpec,
+    start: Instant,
+) -> Result<RobotObservations, PipelineError> {
+    let data = ds
+        .robot(robot)
+        .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+    let estimation = |reason: String| PipelineError::IntrinsicsEstimation {
+        robot: robot.to_owned(),
+        reason,
+    };
+    let redetect = matches!(target, TargetSpec::Charuco(_));
+    let mut rejected = Vec::new();
+    let mut found: Vec<(&b2b_dataset::Capture, Option<GrayImage>, BoardDetection)> = Vec::new();
+    let mut guess: Option<CameraModel> = None;
+    for cap in &data.captures {
+        let image = cap.image.as_ref().map(|p| p.display().to_string());
+        let mut reject = |reason: String| {
+            tracing::warn!(robot, row = cap.row, "capture rejected: {reason}");
+            rejected.push(RejectedCapture {
+                robot: robot.to_owned(),
+                image: image.clone(),
+                row: Some(cap.row),
+                reason,
+            });
+        };
+        let Some(path) = ds.image_path(robot, cap) else {
+            reject(if cap.camera_from_target.is_some() {
+                "row gives T_camera_target but no image: without intrinsics in dataset.json \
+                 it cannot become pixels"
+                    .into()
+            } else {
+                "row has neither an image nor T_camera_target".into()
+            });
+            continue;
+        };
+        let img = match b2b_vision::load_gray(&path) {
+            Ok(img) => img,
+            Err(e) => {
+                reject(e.to_string());
+                continue;
+            }
+        };
+        let g = match &guess {
+            Some(g) => g.clone(),
+            None => {
+                let g = guess_camera(img.width(), img.height())?;
+                guess = Some(g.clone());
+                g
+            }
+        };
+        if (g.width, g.height) != (img.width(), img.height()) {
+            reject(format!(
+                "{}x{} image, the first image of robot '{robot}' is {}x{}: intrinsics are \
+                 estimated for one camera mode",
+                img.width(),
+                img.height(),
+                g.width,
+                g.height
+            ));
+            continue;
+        }
+        match target.detect_corners(&img, &g) {
+            Ok(det) => found.push((cap, redetect.then_some(img), det)),
+            Err(e) => reject(e.to_string()),
+        }
+    }
+    let Some(guess) = guess else {
+        return Err(estimation(format!(
+            "none of its {} captures has a readable image",
+            data.captures.len()
+        )));
+    };
+    let fit_start = Instant::now();
+    let options = IntrinsicsOptions::default();
+    let usable: Vec<(String, BoardDetection)> = found
+        .iter()
+        .filter(|(_, _, det)| det.pixels.len() >= options.min_corners)
+        .map(|(cap, _, det)| {
+            let name = cap
+                .image
+                .as_ref()
+                .map_or_else(|| format!("row {}", cap.row), |p| p.display().to_string());
+            (name, det.clone())
+        })
+        .collect();
+    // At most MAX_INITIAL_VIEWS, spread over the captures in order.
+    let n = usable.len();
+    let views: Vec<(String, BoardDetection)> = if n > MAX_INITIAL_VIEWS {
+        (0..MAX_INITIAL_VIEWS)
+            .map(|k| usable[k * (n - 1) / (MAX_INITIAL_VIEWS - 1)].clone())
+            .collect()
+    } else {
+        usable
+    };
+    let terms = initial_distortion_terms(views.len());
+    let fit = b2b_vision::calibrate_from_detections(
+        &views,
+        guess.width,
+        guess.height,
+        &options,
+        terms,
+        Some(&guess),
+    )
+    .map_err(|e| estimation(e.to_string()))?;
+    let camera = fit.camera.clone();
+    let estimated = EstimatedIntrinsics {
+        terms,
+        images_used: fit.used(),
+        rms_px: fit.rms_px,
+        fit_ms: fit_start.elapsed().as_secs_f64() * 1e3,
+    };
+    tracing::info!(
+        robot,
+        fx = camera.fx,
+        fy = camera.fy,
+        cx = camera.cx,
+        cy = camera.cy,
+        dist = ?&camera.dist[..5],
+        images = estimated.images_used,
+        rms_px = estimated.rms_px,
+        terms = terms.names(),
+        "no intrinsics in dataset.json: initial camera fitted to the captures' corners"
+    );
+    let mut observations = Vec::new();
+    for (cap, img, det) in found {
+        let image = cap.image.as_ref().map(|p| p.display().to_string());
+        let det = match img {
+            Some(img) => target.detect_corners(&img, &camera),
+            None => Ok(det),
+        };
+        match det.and_then(|det| target.pose(&det, &camera).map(|pose| (det, pose))) {
+            Ok((det, pose)) => observations.push(Observation {
+                row: cap.row,
+                image,
+                camera_from_target: pose.camera_from_target,
+                board: BoardCapture {
+                    base_from_flange: cap.base_from_flange,
+                    target_points: det.target_points,
+                    pixels: det.pixels,
+                },
+                pnp_rms_px: pose.rms_px,
+                residuals_px: pose.residuals_px,
+            }),
+            Err(e) => {
+                tracing::warn!(robot, row = cap.row, "capture rejected: {e}");
+                rejected.push(RejectedCapture {
+                    robot: robot.to_owned(),
+                    image,
+                    row: Some(cap.row),
+                    reason: e.to_string(),
+                });
+            }
+        }
+    }
+    rejected.sort_by_key(|r| r.row);
+    Ok(RobotObservations {
+        robot: robot.to_owned(),
+        camera,
+        observations,
+        rejected,
+        detect_ms: start.elapsed().as_secs_f64() * 1e3,
+        estimated_intrinsics: Some(estimated),
+    })
+}
+
+/// `options` for fitting `robots`' observations: intrinsics refined too when asked
+/// or when any of them was estimated from the images (the engine refines every
+/// camera of a problem or none).
+fn options_for(options: &RefineOptions, robots: &[&RobotObservations]) -> RefineOptions {
+    RefineOptions {
+        refine_intrinsics: options.refine_intrinsics
+            || robots.iter().any(|o| o.estimated_intrinsics.is_some()),
+        ..options.clone()
+    }
+}
+
 fn covariance6(m: &Matrix6<f64>) -> [[f64; 6]; 6] {
     let s = (m + m.transpose()) * 0.5;
     let mut out = [[0.0; 6]; 6];
@@ -501,7 +816,22 @@ pub struct HandEyeRun {
 
 /// Computes one robot's hand-eye by the chosen method. Closed forms are reported
 /// with the covariance of the reprojection problem evaluated at their estimate.
+///
+/// When the robot's intrinsics were estimated from its images
+/// ([`RobotObservations::estimated_intrinsics`]) they are refined with the
+/// hand-eye (`refine_intrinsics` is switched on for this fit), so the covariance
+/// includes their uncertainty; the refined camera is
+/// [`HandEyeEstimate::camera`](b2b_calib::refine::HandEyeEstimate).
 pub fn hand_eye(
+    obs: &RobotObservations,
+    choice: HandEyeChoice,
+    options: &RefineOptions,
+) -> Result<HandEyeRun, PipelineError> {
+    hand_eye_with(obs, choice, &options_for(options, &[obs]))
+}
+
+/// [`hand_eye`] with `options` as given (intrinsics refined only when they say so).
+fn hand_eye_with(
     obs: &RobotObservations,
     choice: HandEyeChoice,
     options: &RefineOptions,
@@ -556,6 +886,19 @@ pub fn hand_eye(
         }
     };
     let solve_ms = start.elapsed().as_secs_f64() * 1e3;
+    if options.refine_intrinsics {
+        let c = &estimate.camera;
+        tracing::info!(
+            robot,
+            estimated = obs.estimated_intrinsics.is_some(),
+            fx = c.fx,
+            fy = c.fy,
+            cx = c.cx,
+            cy = c.cy,
+            dist = ?&c.dist[..5],
+            "camera intrinsics refined with the hand-eye"
+        );
+    }
     let result = HandEyeResult {
         format: HANDEYE_FORMAT.to_owned(),
         robot: robot.to_owned(),
@@ -640,12 +983,71 @@ impl B2bMethod {
     }
 }
 
+/// A robot's camera as a calibration used it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotCamera {
+    pub robot: String,
+    /// After the joint fit: the dataset's own unless intrinsics were refined.
+    pub camera: CameraModel,
+    /// Whether the joint fit refined the intrinsics.
+    pub refined: bool,
+    /// `Some` when the dataset gave none and they were estimated from the images.
+    pub estimated: Option<EstimatedIntrinsics>,
+}
+
+impl RobotCamera {
+    /// One line for the console: the camera and where it came from.
+    pub fn describe(&self) -> String {
+        let c = &self.camera;
+        let d = &c.dist;
+        let origin = match (&self.estimated, self.refined) {
+            (Some(e), refined) => format!(
+                "ESTIMATED from {} images (dataset.json has no intrinsics; initial fit of {} at {:.3} px{})",
+                e.images_used,
+                e.terms.names(),
+                e.rms_px,
+                if refined {
+                    ", then refined jointly"
+                } else {
+                    ", not refined further"
+                }
+            ),
+            (None, true) => "given, refined jointly (--refine-intrinsics)".to_owned(),
+            (None, false) => "given".to_owned(),
+        };
+        format!(
+            "camera {}: fx {:.2} fy {:.2} cx {:.2} cy {:.2} dist [{:.5}, {:.5}, {:.5}, {:.5}, {:.5}]: {origin}",
+            self.robot, c.fx, c.fy, c.cx, c.cy, d[0], d[1], d[2], d[3], d[4]
+        )
+    }
+}
+
+/// A base-to-base result and the cameras it was computed with.
+#[derive(Debug, Clone)]
+pub struct CalibrationRun {
+    pub result: CalibrationResult,
+    /// Per robot, in the dataset's order (empty for the RGB-D method, which uses
+    /// the dataset's intrinsics as given).
+    pub cameras: Vec<RobotCamera>,
+}
+
 /// The offline base-to-base calibration of a two-robot dataset.
 pub fn base_to_base(
     ds: &Dataset,
     method: B2bMethod,
     options: &RefineOptions,
 ) -> Result<CalibrationResult, PipelineError> {
+    base_to_base_run(ds, method, options).map(|r| r.result)
+}
+
+/// [`base_to_base`] with the cameras used. Robots without intrinsics in the
+/// dataset get them estimated from their images and refined jointly (board and
+/// multimarker methods; the RGB-D method needs them given).
+pub fn base_to_base_run(
+    ds: &Dataset,
+    method: B2bMethod,
+    options: &RefineOptions,
+) -> Result<CalibrationRun, PipelineError> {
     let start = Instant::now();
     let target = TargetSpec::from_dataset(ds)?;
     match (method, target.is_board()) {
@@ -666,8 +1068,20 @@ pub fn base_to_base(
             )));
         }
         (B2bMethod::Rgbd, _) => {
-            return rgbd::rgbd_base_to_base(ds, options, &rgbd::RgbdOptions::default())
-                .map(|r| r.result);
+            for r in &ds.manifest.robots {
+                if r.camera.is_none() {
+                    return Err(PipelineError::NoIntrinsics {
+                        robot: r.id.clone(),
+                        manifest: ds.root.join("dataset.json"),
+                    });
+                }
+            }
+            return rgbd::rgbd_base_to_base(ds, options, &rgbd::RgbdOptions::default()).map(|r| {
+                CalibrationRun {
+                    result: r.result,
+                    cameras: Vec::new(),
+                }
+            });
         }
     }
     if ds.manifest.robots.len() != 2 {
@@ -681,10 +1095,25 @@ pub fn base_to_base(
     let obs1 = observe_robot(ds, &ids[0])?;
     let obs2 = observe_robot(ds, &ids[1])?;
     let board_centre = target.centre();
-    let mut result =
-        base_to_base_from_observations_with([&obs1, &obs2], &board_centre, options, method)?;
+    let (mut result, cameras) = joint_base_to_base([&obs1, &obs2], &board_centre, options, method)?;
     result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
-    Ok(result)
+    let refined = options_for(options, &[&obs1, &obs2]).refine_intrinsics;
+    let cameras = [&obs1, &obs2]
+        .into_iter()
+        .zip(cameras)
+        .map(|(o, camera)| RobotCamera {
+            robot: o.robot.clone(),
+            camera,
+            refined,
+            estimated: o.estimated_intrinsics.clone(),
+        })
+        .collect::<Vec<_>>();
+    for c in &cameras {
+        if c.estimated.is_some() {
+            tracing::info!("{}", c.describe());
+        }
+    }
+    Ok(CalibrationRun { result, cameras })
 }
 
 /// Base-to-base from both robots' observations (offline or received live), by the
@@ -709,6 +1138,19 @@ pub fn base_to_base_from_observations_with(
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<CalibrationResult, PipelineError> {
+    joint_base_to_base(robots, board_centre, options, method).map(|(r, _)| r)
+}
+
+/// [`base_to_base_from_observations_with`] and both cameras after the joint fit.
+/// Intrinsics estimated from the images are refined in the joint fit
+/// ([`options_for`]); the closed-form seeds use the initial cameras.
+fn joint_base_to_base(
+    robots: [&RobotObservations; 2],
+    board_centre: &Point3<f64>,
+    options: &RefineOptions,
+    method: B2bMethod,
+) -> Result<(CalibrationResult, [CameraModel; 2]), PipelineError> {
+    let options = &options_for(options, &robots);
     if method == B2bMethod::Rgbd {
         return Err(PipelineError::Unsupported(
             "method rgbd needs the images and depth of a dataset (coordinator calibrate --method rgbd); captures on the bus carry neither".into(),
@@ -750,7 +1192,7 @@ pub fn base_to_base_from_observations_with(
     let (used2, rejected2) = after_fit(obs2, &run.rejections[1]);
     rejected.extend(rejected2);
     let detect_ms = obs1.detect_ms + obs2.detect_ms;
-    Ok(CalibrationResult {
+    let result = CalibrationResult {
         format: RESULT_FORMAT.to_owned(),
         method: method.name().to_owned(),
         base1_from_base2: Pose::from_isometry(&joint.base1_from_base2),
@@ -779,7 +1221,8 @@ pub fn base_to_base_from_observations_with(
             solve: solve_ms,
             total: detect_ms + solve_ms,
         },
-    })
+    };
+    Ok((result, joint.cameras))
 }
 
 /// The captures a fit used, and every rejected one with its reason: those

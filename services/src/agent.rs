@@ -426,6 +426,7 @@ pub fn run_agent(
                 observations: vec![],
                 rejected: vec![],
                 detect_ms: 0.0,
+                estimated_intrinsics: None,
             });
             let mut msg = Capture {
                 index: cap.index,

@@ -238,6 +238,7 @@ impl Store {
             observations,
             rejected,
             detect_ms: 0.0,
+            estimated_intrinsics: None,
         })
     }
 

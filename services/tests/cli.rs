@@ -202,3 +202,89 @@ fn rgbd_with_hand_eye_files() {
         "--hand-eye is for --method rgbd",
     );
 }
+
+/// A copy of a dataset with every robot's `camera` block deleted from
+/// `dataset.json`; the other entries are symlinked.
+fn without_camera(dir: &Path) -> tempfile::TempDir {
+    let tmp = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(dir.join("dataset.json")).unwrap();
+    let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    for robot in json["robots"].as_array_mut().unwrap() {
+        assert!(robot.as_object_mut().unwrap().remove("camera").is_some());
+    }
+    std::fs::write(tmp.path().join("dataset.json"), json.to_string()).unwrap();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let entry = entry.unwrap();
+        if entry.file_name() != "dataset.json" {
+            std::os::unix::fs::symlink(
+                entry.path().canonicalize().unwrap(),
+                tmp.path().join(entry.file_name()),
+            )
+            .unwrap();
+        }
+    }
+    tmp
+}
+
+/// Datasets without intrinsics: `coordinator calibrate` and `agent handeye`
+/// estimate them, say so, and write their results; the RGB-D method refuses.
+#[test]
+fn calibrate_and_handeye_without_intrinsics() {
+    let ds = without_camera(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12"),
+    );
+    let out_dir = tempfile::tempdir().unwrap();
+    let result = out_dir.path().join("RESULT.json");
+    let out = coordinator()
+        .args(["calibrate", "--dataset"])
+        .arg(ds.path())
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    assert!(
+        stdout.contains("camera robot1") && stdout.contains("ESTIMATED"),
+        "{stdout}"
+    );
+    let r: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    r.validate().unwrap();
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--method", "rgbd", "--dataset"])
+            .arg(ds.path())
+            .arg("--out")
+            .arg(out_dir.path().join("rgbd.json")),
+        "no camera intrinsics",
+    );
+
+    let visp = without_camera(
+        &Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/datasets/visp-franka-eye-in-hand"),
+    );
+    let he = out_dir.path().join("HANDEYE.json");
+    let out = agent()
+        .args(["handeye", "--robot", "robot1", "--dataset"])
+        .arg(visp.path())
+        .arg("--out")
+        .arg(&he)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("ESTIMATED from 8 images"), "{stdout}");
+    let h: b2b_protocol::HandEyeResult =
+        serde_json::from_str(&std::fs::read_to_string(&he).unwrap()).unwrap();
+    assert_eq!(h.per_capture.len(), 8);
+}

@@ -186,21 +186,162 @@ fn calibrate_pass(
             Err(e) => report.rejected = Some(format!("board not found: {e}")),
             Ok(det) => {
                 report.corners = det.pixels.len();
-                if det.pixels.len() < options.min_corners.max(4) {
-                    report.rejected = Some(format!(
-                        "too few corners: {} seen, need {}",
-                        det.pixels.len(),
-                        options.min_corners.max(4)
-                    ));
-                } else {
-                    views.push((k, det));
-                }
+                views.push((k, det));
             }
         }
         reports.push(report);
     }
-    let (w, h) = (guess.width, guess.height);
-    let mut fit = run_calibration(&views, w, h, options, &reports)?;
+    let terms = if options.fit_k3 {
+        DistortionTerms::K1K2P1P2K3
+    } else {
+        DistortionTerms::K1K2P1P2
+    };
+    let settings = FitSettings {
+        width: guess.width,
+        height: guess.height,
+        options,
+        flags: terms.flags(),
+        guess: None,
+        stop: (100, 1e-12),
+    };
+    fit_views(views, reports, &settings)
+}
+
+/// How [`fit_views`] runs `calibrateCamera`.
+struct FitSettings<'a> {
+    width: u32,
+    height: u32,
+    options: &'a IntrinsicsOptions,
+    /// `CALIB_*` flags of the distortion terms.
+    flags: i32,
+    /// The starting camera of a non-planar target (`CALIB_USE_INTRINSIC_GUESS`).
+    guess: Option<&'a CameraModel>,
+    /// Iterations and step size at which the LM stops.
+    stop: (i32, f64),
+}
+
+/// Which distortion coefficients `calibrateCamera` fits; the others stay zero.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DistortionTerms {
+    /// `k1` alone.
+    K1,
+    /// `k1, k2`.
+    K1K2,
+    /// `k1, k2, p1, p2` (k3 = 0, OpenCV's `CALIB_FIX_K3`).
+    K1K2P1P2,
+    /// `k1, k2, p1, p2, k3`.
+    K1K2P1P2K3,
+}
+
+impl DistortionTerms {
+    fn flags(self) -> i32 {
+        match self {
+            DistortionTerms::K1 => {
+                calib3d::CALIB_FIX_K2 | calib3d::CALIB_FIX_K3 | calib3d::CALIB_ZERO_TANGENT_DIST
+            }
+            DistortionTerms::K1K2 => calib3d::CALIB_FIX_K3 | calib3d::CALIB_ZERO_TANGENT_DIST,
+            DistortionTerms::K1K2P1P2 => calib3d::CALIB_FIX_K3,
+            DistortionTerms::K1K2P1P2K3 => 0,
+        }
+    }
+
+    /// The names of the fitted coefficients, e.g. `k1 k2 p1 p2`.
+    pub fn names(self) -> &'static str {
+        match self {
+            DistortionTerms::K1 => "k1",
+            DistortionTerms::K1K2 => "k1 k2",
+            DistortionTerms::K1K2P1P2 => "k1 k2 p1 p2",
+            DistortionTerms::K1K2P1P2K3 => "k1 k2 p1 p2 k3",
+        }
+    }
+}
+
+/// Calibrates a `width` x `height` camera from corners already detected, one named
+/// view per image (checkerboard, ChArUco, ArUco grid or multimarker corners: any
+/// [`BoardDetection`]), with the per-view outlier rejection of
+/// [`calibrate_intrinsics`] and only the distortion `terms` fitted. Views with fewer
+/// than [`IntrinsicsOptions::min_corners`] corners are rejected with the reason.
+///
+/// Views whose target points do not all lie on the target's z = 0 plane (a
+/// non-planar multimarker set) cannot start from Zhang's closed form: they need
+/// `guess` (OpenCV's `CALIB_USE_INTRINSIC_GUESS`), and a missing guess is an error.
+/// A guess is used only for such views.
+pub fn calibrate_from_detections(
+    views: &[(String, BoardDetection)],
+    width: u32,
+    height: u32,
+    options: &IntrinsicsOptions,
+    terms: DistortionTerms,
+    guess: Option<&CameraModel>,
+) -> Result<IntrinsicsResult, VisionError> {
+    if width == 0 || height == 0 {
+        return Err(VisionError::Intrinsics(format!(
+            "image size {width}x{height}: both sides must be positive"
+        )));
+    }
+    let planar = views
+        .iter()
+        .all(|(_, d)| d.target_points.iter().all(|p| p.z == 0.0));
+    let guess = if planar {
+        None
+    } else {
+        Some(guess.ok_or_else(|| {
+            VisionError::Intrinsics(
+                "the target points are not on one z = 0 plane: calibrateCamera needs an initial camera guess"
+                    .into(),
+            )
+        })?)
+    };
+    let reports = views
+        .iter()
+        .map(|(name, d)| ImageReport {
+            name: name.clone(),
+            corners: d.pixels.len(),
+            rms_px: None,
+            rejected: None,
+        })
+        .collect();
+    let indexed = views.iter().cloned().map(|(_, d)| d).enumerate().collect();
+    // OpenCV's own default stop (30 iterations or a step of machine epsilon): the
+    // dense LM over all views' poses costs O(views³) per iteration, and a caller
+    // that refines the camera further needs no more.
+    let settings = FitSettings {
+        width,
+        height,
+        options,
+        flags: terms.flags(),
+        guess,
+        stop: (30, f64::EPSILON),
+    };
+    fit_views(indexed, reports, &settings)
+}
+
+/// The fit shared by [`calibrate_intrinsics`] and [`calibrate_from_detections`]:
+/// drops views with too few corners, fits, rejects per-view outliers and fits again.
+fn fit_views(
+    views: Vec<(usize, BoardDetection)>,
+    mut reports: Vec<ImageReport>,
+    settings: &FitSettings<'_>,
+) -> Result<IntrinsicsResult, VisionError> {
+    let options = settings.options;
+    let need = options.min_corners.max(4);
+    let views: Vec<(usize, BoardDetection)> = views
+        .into_iter()
+        .filter(|(k, det)| {
+            let ok = det.pixels.len() >= need;
+            if !ok {
+                reports[*k].rejected = Some(format!(
+                    "too few corners: {} seen, need {need}",
+                    det.pixels.len()
+                ));
+            }
+            ok
+        })
+        .collect();
+    let fit_once = |views: &[(usize, BoardDetection)], reports: &[ImageReport]| {
+        run_calibration(views, reports, settings)
+    };
+    let mut fit = fit_once(&views, &reports)?;
     // Per-image outliers: drop them and fit again (once).
     let mut errors: Vec<f64> = fit.1.clone();
     errors.sort_by(f64::total_cmp);
@@ -220,7 +361,7 @@ fn calibrate_pass(
         }
     }
     if kept.len() != fit.1.len() {
-        fit = run_calibration(&kept, w, h, options, &reports)?;
+        fit = fit_once(&kept, &reports)?;
         for ((k, _), e) in kept.iter().zip(&fit.1) {
             reports[*k].rms_px = Some(*e);
         }
@@ -235,11 +376,16 @@ fn calibrate_pass(
 /// `calibrateCamera` on the views; returns the camera, per-view RMS and overall RMS.
 fn run_calibration(
     views: &[(usize, BoardDetection)],
-    w: u32,
-    h: u32,
-    options: &IntrinsicsOptions,
     reports: &[ImageReport],
+    settings: &FitSettings<'_>,
 ) -> Result<(CameraModel, Vec<f64>, f64), VisionError> {
+    let (w, h, options, flags) = (
+        settings.width,
+        settings.height,
+        settings.options,
+        settings.flags,
+    );
+    let (max_iterations, eps) = settings.stop;
     if views.len() < options.min_images.max(3) {
         let reasons: Vec<String> = reports
             .iter()
@@ -270,20 +416,22 @@ fn run_calibration(
                 .collect()
         })
         .collect();
-    let mut k = Mat::default();
-    let mut dist = Mat::default();
+    let (mut k, mut dist, flags) = match settings.guess {
+        Some(g) => {
+            let k = Mat::from_slice_2d(&[[g.fx, 0.0, g.cx], [0.0, g.fy, g.cy], [0.0, 0.0, 1.0]])
+                .cv("camera matrix")?;
+            let d = Mat::from_slice_2d(&[&g.dist[..5]]).cv("distortion")?;
+            (k, d, flags | calib3d::CALIB_USE_INTRINSIC_GUESS)
+        }
+        None => (Mat::default(), Mat::default(), flags),
+    };
     let mut rvecs = Vector::<Mat>::new();
     let mut tvecs = Vector::<Mat>::new();
     let (mut sd_i, mut sd_e, mut per_view) = (Mat::default(), Mat::default(), Mat::default());
-    let flags = if options.fit_k3 {
-        0
-    } else {
-        calib3d::CALIB_FIX_K3
-    };
     let criteria = TermCriteria::new(
         opencv::core::TermCriteria_COUNT + opencv::core::TermCriteria_EPS,
-        100,
-        1e-12,
+        max_iterations,
+        eps,
     )
     .cv("TermCriteria")?;
     let rms = calib3d::calibrate_camera_extended(

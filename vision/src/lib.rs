@@ -109,8 +109,8 @@ pub use image::{
     load_gray, load_gray_sized,
 };
 pub use intrinsics::{
-    CalibrationTarget, IntrinsicsOptions, IntrinsicsResult, calibrate_intrinsics,
-    calibrate_intrinsics_from_dir,
+    CalibrationTarget, DistortionTerms, IntrinsicsOptions, IntrinsicsResult,
+    calibrate_from_detections, calibrate_intrinsics, calibrate_intrinsics_from_dir,
 };
 pub use markers::{
     ArucoGridSpec, CharucoSpec, MarkerDictionary, detect_aruco_grid, detect_charuco, detect_marker,

@@ -135,6 +135,8 @@ enum Command {
         #[arg(long, default_value = "refined")]
         method: String,
         /// Also refine the camera intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3).
+        /// A robot without intrinsics in dataset.json always gets them estimated
+        /// from its images and refined so.
         #[arg(long)]
         refine_intrinsics: bool,
         /// Where to write HANDEYE.json.
@@ -516,6 +518,15 @@ fn main() -> std::process::ExitCode {
                 "reprojection RMS {:.3} px; detect {:.0} ms, solve {:.0} ms",
                 r.reprojection_rms_px, r.timings_ms.detect, r.timings_ms.solve
             );
+            if obs.estimated_intrinsics.is_some() || refine_intrinsics {
+                let camera = b2b_pipeline::RobotCamera {
+                    robot: robot.clone(),
+                    camera: run.estimate.camera.clone(),
+                    refined: choice == HandEyeChoice::Refined,
+                    estimated: obs.estimated_intrinsics.clone(),
+                };
+                println!("{}", camera.describe());
+            }
             if recorder.is_enabled() {
                 let x = r.flange_from_camera.to_isometry("T_flange_camera")?;
                 let c = &obs.camera;

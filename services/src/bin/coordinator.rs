@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use b2b_pipeline::{B2bMethod, base_to_base, load_dataset, verify};
+use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, verify};
 use b2b_protocol::CalibrationResult;
 use b2b_services::outputs::{print_result, write_result};
 use b2b_services::{
@@ -66,6 +66,12 @@ enum Command {
         /// dataset's target: the base-to-base step then needs no target at all.
         #[arg(long = "hand-eye")]
         hand_eye: Vec<PathBuf>,
+        /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
+        /// k1, k2, p1, p2, k3) with the hand-eyes and base-to-base. A robot without
+        /// intrinsics in dataset.json always gets them estimated from its images
+        /// and refined so.
+        #[arg(long)]
+        refine_intrinsics: bool,
         /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
         #[arg(long)]
         out: PathBuf,
@@ -219,6 +225,7 @@ fn main() -> std::process::ExitCode {
             dataset,
             method,
             hand_eye,
+            refine_intrinsics,
             out,
             noise,
             rerun,
@@ -229,8 +236,19 @@ fn main() -> std::process::ExitCode {
                 Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
+            anyhow::ensure!(
+                !(refine_intrinsics && method == B2bMethod::Rgbd),
+                "--refine-intrinsics is for --method board or multimarker (the rgbd method uses the given intrinsics)"
+            );
+            let mut cameras = Vec::new();
             let result = if hand_eye.is_empty() {
-                base_to_base(&ds, method, &noise.options()?)?
+                let options = b2b_calib::refine::RefineOptions {
+                    refine_intrinsics,
+                    ..noise.options()?
+                };
+                let run = base_to_base_run(&ds, method, &options)?;
+                cameras = run.cameras;
+                run.result
             } else {
                 anyhow::ensure!(
                     method == B2bMethod::Rgbd,
@@ -244,6 +262,12 @@ fn main() -> std::process::ExitCode {
             log_result(&recorder, &result, Some(&order));
             finish_recording(recorder);
             print_result(&result);
+            for c in cameras
+                .iter()
+                .filter(|c| c.refined || c.estimated.is_some())
+            {
+                println!("{}", c.describe());
+            }
             println!("wrote {}", out.display());
             Ok(())
         }
