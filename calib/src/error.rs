@@ -53,4 +53,7 @@ pub enum CalibError {
     /// After outlier rejection too little data is left.
     #[error("too few inliers after outlier rejection: {0}")]
     TooFewInliers(String),
+    /// A target symmetry that is not a group of labellings of the target's points.
+    #[error("invalid target symmetry, element {element}: {reason}")]
+    InvalidSymmetry { element: usize, reason: String },
 }

@@ -16,6 +16,8 @@
 //!   closed form, with robust loss, MAD outlier rejection and covariance.
 //! - [`base_to_base`]: both robots as one problem, with `base1_from_base2`.
 //! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
+//! - [`symmetry`]: targets that look the same turned (odd x odd checkerboards),
+//!   and choosing each view's labelling from the robot motion.
 //! - [`synth`]: synthetic problems with known truth, for tests and benchmarks.
 //! - [`metrics`]: ISO 9283 accuracy and repeatability, touch-point verification.
 
@@ -27,6 +29,7 @@ pub mod metrics;
 pub mod pose;
 pub mod procrustes;
 pub mod refine;
+pub mod symmetry;
 pub mod synth;
 
 mod error;
