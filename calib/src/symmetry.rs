@@ -384,10 +384,10 @@ pub fn resolve_labelling(
                 let a = camera_from_target[i] * s * camera_from_target[j].inverse();
                 let (a_angle, a_axial) = screw_invariants(&a);
                 let mut c = ((a_angle - b_angle) / options.sigma_angle_rad).powi(2);
-                if a_angle.min(b_angle) >= options.min_axis_angle_rad {
-                    if let (Some(da), Some(db)) = (a_axial, b_axial) {
-                        c += ((da - db) / options.sigma_axial_m).powi(2);
-                    }
+                if a_angle.min(b_angle) >= options.min_axis_angle_rad
+                    && let (Some(da), Some(db)) = (a_axial, b_axial)
+                {
+                    c += ((da - db) / options.sigma_axial_m).powi(2);
                 }
                 let c = if c.is_finite() {
                     c.min(options.max_pair_cost)

@@ -118,7 +118,7 @@ impl CheckerboardSpec {
         if self.orientation_is_unambiguous() {
             return TargetSymmetry::trivial(self.corner_count());
         }
-        let quarter = self.cols == self.rows && self.cols % 2 == 0;
+        let quarter = self.cols == self.rows && self.cols.is_multiple_of(2);
         TargetSymmetry::grid_turns(self.cols, self.rows, self.square_m, quarter)
     }
 
