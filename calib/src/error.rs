@@ -104,4 +104,7 @@ pub enum CalibError {
         min_m: f64,
         max_m: f64,
     },
+    /// A target symmetry that is not a group of labellings of the target's points.
+    #[error("invalid target symmetry, element {element}: {reason}")]
+    InvalidSymmetry { element: usize, reason: String },
 }

@@ -18,6 +18,8 @@
 //! - [`sanity`]: pre-fit checks that flange and board poses belong together
 //!   (quaternion order, units, mismatched rows), from invariants of AX = XB.
 //! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
+//! - [`symmetry`]: targets that look the same turned (odd x odd checkerboards),
+//!   and choosing each view's labelling from the robot motion.
 //! - [`synth`]: synthetic problems with known truth, for tests and benchmarks.
 //! - [`metrics`]: ISO 9283 accuracy and repeatability, touch-point verification.
 
@@ -31,6 +33,7 @@ pub mod pose;
 pub mod procrustes;
 pub mod refine;
 pub mod sanity;
+pub mod symmetry;
 pub mod synth;
 
 mod error;

@@ -7,7 +7,9 @@
 //! 1. [`observe_robot`]: per capture, detect the target (vision crate: checkerboard,
 //!    ChArUco, ArUco grid or multimarker, [`TargetSpec`]), fit its pose, and pair
 //!    the corners seen (3-D target points + pixels) with the flange pose; failures
-//!    become rejected captures with a reason, never silent drops.
+//!    become rejected captures with a reason, never silent drops. A checkerboard that
+//!    looks the same turned (odd x odd squares, square boards) gets each capture's
+//!    labelling from the robot's motion ([`observe_robot`], see "Symmetric targets").
 //! 2. [`hand_eye`]: a closed form (Tsai, Park, Horaud, Andreff, Daniilidis, Shah, Li)
 //!    or the joint reprojection refinement seeded by Park.
 //! 3. [`base_to_base`]: both robots' refinements, then the joint problem over both
@@ -15,6 +17,37 @@
 //!    and `multimarker` methods are this same problem (the refinement projects 3-D
 //!    target points and does not assume a plane); each needs its kind of target.
 //! 4. [`verify`]: the touch-point check of a result.
+//!
+//! # Symmetric targets
+//!
+//! A checkerboard with `cols + rows` even (8x6 inner corners = 9x7 squares) looks the
+//! same turned by 180° about its centre, a square one possibly also by 90°, so one image
+//! cannot say which corner is which. The rule:
+//!
+//! - **Within one robot the motion decides.** [`observe_robot`] detects every capture
+//!   in some labelling and then chooses each capture's labelling so that the camera's
+//!   motion between captures has the same rotation angle and screw translation as the
+//!   flange's (the hand-eye invariants, `b2b_calib::symmetry::resolve_labelling`); the
+//!   first capture keeps the detector's labelling. A capture whose labelling the motion
+//!   cannot decide (its alternatives fit about as well, e.g. it is turned by 90° about
+//!   the board normal from the others, or its board pose is bad) is rejected with that
+//!   reason while at least 3 captures and two thirds of them are decided; otherwise the
+//!   robot is refused with [`PipelineError::SymmetricLabellingUndecided`] naming the
+//!   captures.
+//! - **Between two robots only gravity can decide.** Relabelling all of robot 2's
+//!   captures turns `base1_from_base2` about the board normal and leaves every residual
+//!   the same. The service assumes both bases stand upright (base z = up, the carts on
+//!   the floor), so "up" seen from the board must agree for both robots; that decides
+//!   the turn when the board is tilted out of the horizontal (a half-turn moves "up" by
+//!   twice the tilt; decided when one turn agrees within 5° and the others are at least
+//!   10° further, i.e. from about 10° of tilt). A board lying flat cannot be decided:
+//!   [`base_to_base`] refuses with [`PipelineError::SymmetricTargetBetweenRobots`] and
+//!   suggests an asymmetric board (9x6 inner corners = 10x7 squares) or ChArUco. A
+//!   wrong guess would move the result by a turn of the whole board, far beyond any
+//!   stated uncertainty, so the service does not guess.
+//! - The live agent publishes each capture as it is taken and cannot relabel it later,
+//!   so [`observe_capture`] keeps refusing symmetric boards (the vision crate's
+//!   [`VisionError::AmbiguousOrientation`]).
 
 pub mod rgbd;
 
@@ -28,6 +61,9 @@ use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
 use b2b_calib::refine::{BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye};
 use b2b_calib::sanity::{SanityOptions, SanityReport, check_pose_pairs};
+use b2b_calib::symmetry::{
+    GravityOptions, LabellingOptions, TargetSymmetry, resolve_between_robots, resolve_labelling,
+};
 use b2b_calib::{CalibError, Iso3};
 use b2b_dataset::{Dataset, DatasetError, Target, TouchPair};
 use b2b_protocol::{
@@ -73,6 +109,37 @@ pub enum PipelineError {
     IntrinsicsEstimation { robot: String, reason: String },
     #[error("{0}")]
     Invalid(String),
+    /// A symmetric target whose labelling the robot's motion could not decide for too
+    /// many captures (see the crate docs, "Symmetric targets").
+    #[error(
+        "robot {robot}: the {target} looks the same turned about its centre, and the robot's \
+         motion cannot decide its labelling in {}: {reason}; use an asymmetric board (9x6 \
+         inner corners = 10x7 squares) or a ChArUco board, or capture from more varied poses",
+        .captures.join(", ")
+    )]
+    SymmetricLabellingUndecided {
+        robot: String,
+        target: String,
+        captures: Vec<String>,
+        reason: String,
+    },
+    /// Two robots saw a symmetric target and nothing physical decides how robot 2's
+    /// labelling relates to robot 1's (see the crate docs, "Symmetric targets").
+    #[error(
+        "the {target} looks the same turned about its normal, so robot {robot2}'s captures \
+         can be labelled {turns} relative to robot {robot1}'s and base1_from_base2 would turn \
+         with them; motion cannot decide this between two robots and gravity (both bases \
+         upright) cannot either: {reason}. Use an asymmetric board (cols + rows odd, e.g. 9x6 \
+         inner corners = 10x7 squares) or a ChArUco board, or tilt the board at least 15° \
+         out of the horizontal"
+    )]
+    SymmetricTargetBetweenRobots {
+        target: String,
+        robot1: String,
+        robot2: String,
+        turns: String,
+        reason: String,
+    },
 }
 
 fn calib(robot: &str) -> impl FnOnce(CalibError) -> PipelineError + '_ {
@@ -281,6 +348,35 @@ impl TargetSpec {
         )
     }
 
+    /// The labellings of the target that no image can tell apart (only the identity
+    /// unless it is a checkerboard with `cols + rows` even).
+    pub fn symmetry(&self) -> TargetSymmetry {
+        match self {
+            TargetSpec::Checkerboard(s) => s.symmetry(),
+            _ => TargetSymmetry::trivial(self.all_points().len()),
+        }
+    }
+
+    /// The target for messages ("8x6 checkerboard (inner corners; 9x7 squares)").
+    pub fn describe(&self) -> String {
+        match self {
+            TargetSpec::Checkerboard(s) => format!(
+                "{}x{} checkerboard (inner corners; {}x{} squares)",
+                s.cols,
+                s.rows,
+                s.cols + 1,
+                s.rows + 1
+            ),
+            TargetSpec::Charuco(s) => format!("{}x{} ChArUco board", s.squares[0], s.squares[1]),
+            TargetSpec::ArucoGrid(s) => {
+                format!("{}x{} ArUco grid", s.markers[0], s.markers[1])
+            }
+            TargetSpec::Multimarker { config, .. } => {
+                format!("multimarker set of {} markers", config.markers.len())
+            }
+        }
+    }
+
     /// Whether this is a board (checkerboard, ChArUco, ArUco grid) rather than a
     /// multimarker set.
     pub fn is_board(&self) -> bool {
@@ -289,12 +385,36 @@ impl TargetSpec {
 
     /// Finds the target in an image and fits `camera_from_target`: the corners seen
     /// (target points and pixels) and the pose with its residuals.
+    /// A symmetric checkerboard is refused ([`VisionError::AmbiguousOrientation`]);
+    /// [`TargetSpec::detect_up_to_symmetry`] returns it in some labelling.
     pub fn detect(
         &self,
         img: &b2b_vision::GrayImage,
         camera: &CameraModel,
     ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
+        self.detect_impl(img, camera, false)
+    }
+
+    /// [`TargetSpec::detect`], but a symmetric checkerboard comes back in one of the
+    /// labellings of [`TargetSpec::symmetry`], which the caller must resolve.
+    pub fn detect_up_to_symmetry(
+        &self,
+        img: &b2b_vision::GrayImage,
+        camera: &CameraModel,
+    ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
+        self.detect_impl(img, camera, true)
+    }
+
+    fn detect_impl(
+        &self,
+        img: &b2b_vision::GrayImage,
+        camera: &CameraModel,
+        up_to_symmetry: bool,
+    ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
         let det = match self {
+            TargetSpec::Checkerboard(s) if up_to_symmetry => {
+                b2b_vision::detect_checkerboard_up_to_symmetry(img, s)?.0
+            }
             TargetSpec::Checkerboard(s) => b2b_vision::detect_checkerboard(img, s)?,
             TargetSpec::Charuco(s) => b2b_vision::detect_charuco(img, s, camera)?,
             TargetSpec::ArucoGrid(s) => b2b_vision::detect_aruco_grid(img, s)?,
@@ -378,10 +498,22 @@ impl RobotSetup {
 /// Detects the target in one capture and fits its pose, or says why not. Rows
 /// that give `T_camera_target` directly (pose-only rows) become the target's
 /// points projected by that pose, so the refinement sees the same kind of data.
+///
+/// A symmetric checkerboard is rejected here (one capture cannot fix its labelling);
+/// [`observe_robot`] decides it over all of a robot's captures.
 pub fn observe_capture(
     ds: &Dataset,
     setup: &RobotSetup,
     cap: &b2b_dataset::Capture,
+) -> Result<Observation, RejectedCapture> {
+    observe_capture_impl(ds, setup, cap, false)
+}
+
+fn observe_capture_impl(
+    ds: &Dataset,
+    setup: &RobotSetup,
+    cap: &b2b_dataset::Capture,
+    up_to_symmetry: bool,
 ) -> Result<Observation, RejectedCapture> {
     let robot = setup.robot.as_str();
     let image = cap.image.as_ref().map(|p| p.display().to_string());
@@ -422,7 +554,11 @@ pub fn observe_capture(
     };
     let (detection, pose) =
         b2b_vision::load_gray_sized(&path, setup.camera.width, setup.camera.height)
-            .and_then(|img| setup.target.detect(&img, &setup.camera))
+            .and_then(|img| {
+                setup
+                    .target
+                    .detect_impl(&img, &setup.camera, up_to_symmetry)
+            })
             .map_err(|e| reject(e.to_string()))?;
     Ok(Observation {
         row: cap.row,
@@ -439,7 +575,9 @@ pub fn observe_capture(
 }
 
 /// Detects the board in every capture of one robot and fits its pose; failures
-/// become rejected captures with a reason, never silent drops.
+/// become rejected captures with a reason, never silent drops. A symmetric target's
+/// labelling is chosen per capture from the robot's motion (crate docs, "Symmetric
+/// targets"), the first capture keeping the detector's.
 ///
 /// A robot without a `camera` block in `dataset.json` gets one estimated from
 /// these same captures (see [`observe_uncalibrated`]); the result says so in
@@ -459,13 +597,23 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
     let mut observations = Vec::new();
     let mut rejected = Vec::new();
     for cap in &data.captures {
-        match observe_capture(ds, &setup, cap) {
+        match observe_capture_impl(ds, &setup, cap, true) {
             Ok(o) => observations.push(o),
             Err(r) => {
                 tracing::warn!(robot, row = cap.row, "capture rejected: {}", r.reason);
                 rejected.push(r);
             }
         }
+    }
+    let symmetry = setup.target.symmetry();
+    if !symmetry.is_trivial() {
+        observations = resolve_symmetric_labelling(
+            robot,
+            &setup.target.describe(),
+            &symmetry,
+            observations,
+            &mut rejected,
+        )?;
     }
     let obs = RobotObservations {
         robot: robot.to_owned(),
@@ -796,6 +944,159 @@ fn options_for(options: &RefineOptions, robots: &[&RobotObservations]) -> Refine
     }
 }
 
+/// At least this many captures must be decided, and at least two thirds of them, before
+/// undecided captures of a symmetric target are rejected rather than the robot refused.
+const MIN_DECIDED_CAPTURES: usize = 3;
+
+fn capture_name(o: &Observation) -> String {
+    match &o.image {
+        Some(image) => format!("row {} ({image})", o.row),
+        None => format!("row {}", o.row),
+    }
+}
+
+/// Chooses each observation's labelling of a symmetric target from the robot's motion
+/// and relabels it (pose and target points; the pixels stay); see the crate docs.
+fn resolve_symmetric_labelling(
+    robot: &str,
+    target: &str,
+    symmetry: &TargetSymmetry,
+    observations: Vec<Observation>,
+    rejected: &mut Vec<RejectedCapture>,
+) -> Result<Vec<Observation>, PipelineError> {
+    let options = LabellingOptions::default();
+    let base_from_flange: Vec<Iso3> = observations
+        .iter()
+        .map(|o| o.board.base_from_flange)
+        .collect();
+    let camera_from_target: Vec<Iso3> = observations.iter().map(|o| o.camera_from_target).collect();
+    let resolution = resolve_labelling(&base_from_flange, &camera_from_target, symmetry, &options)
+        .map_err(calib(robot))?;
+    let undecided = resolution.undecided();
+    let total = observations.len();
+    let decided = total - undecided.len();
+    let name = |k: Option<usize>| {
+        k.map_or("none", |k| symmetry.elements()[k].name.as_str())
+            .to_owned()
+    };
+    let why = |v: usize| {
+        let view = &resolution.views[v];
+        format!(
+            "its motion to the other captures fits the labelling '{}' and the labelling '{}' \
+             about equally (they differ by {:.1}, need {:.0}; {} of {} pairs decisive): a capture \
+             turned about the board normal by 90° from the others, or a bad board pose",
+            name(Some(view.element)),
+            name(view.runner_up),
+            view.margin,
+            options.min_margin,
+            view.decisive_pairs,
+            total - 1
+        )
+    };
+    if !undecided.is_empty() && (decided < MIN_DECIDED_CAPTURES || 3 * decided < 2 * total) {
+        return Err(PipelineError::SymmetricLabellingUndecided {
+            robot: robot.to_owned(),
+            target: target.to_owned(),
+            captures: undecided
+                .iter()
+                .map(|&v| capture_name(&observations[v]))
+                .collect(),
+            reason: format!(
+                "{decided} of {total} captures decided (need {MIN_DECIDED_CAPTURES} and two thirds); {}",
+                why(undecided[0])
+            ),
+        });
+    }
+    let mut kept = Vec::with_capacity(decided);
+    for (v, mut o) in observations.into_iter().enumerate() {
+        let view = &resolution.views[v];
+        if !view.decided {
+            let r = RejectedCapture {
+                robot: robot.to_owned(),
+                image: o.image.clone(),
+                row: Some(o.row),
+                reason: format!("labelling of the symmetric {target} undecided: {}", why(v)),
+            };
+            tracing::warn!(robot, row = o.row, "capture rejected: {}", r.reason);
+            rejected.push(r);
+            continue;
+        }
+        tracing::debug!(
+            robot,
+            row = o.row,
+            margin = view.margin,
+            "symmetric target labelled by '{}'",
+            name(Some(view.element))
+        );
+        o.camera_from_target = symmetry.relabel_pose(&o.camera_from_target, view.element);
+        o.board.target_points = symmetry.relabel_points(&o.board.target_points, view.element);
+        kept.push(o);
+    }
+    Ok(kept)
+}
+
+/// Makes robot 2's labelling of a symmetric target agree with robot 1's by gravity
+/// (both bases upright), or refuses; see the crate docs, "Symmetric targets".
+fn align_symmetric_between_robots(
+    target: &TargetSpec,
+    symmetry: &TargetSymmetry,
+    obs1: &RobotObservations,
+    obs2: &mut RobotObservations,
+) -> Result<(), PipelineError> {
+    let base_from_target = |obs: &RobotObservations| -> Result<Iso3, PipelineError> {
+        let b: Vec<Iso3> = obs
+            .observations
+            .iter()
+            .map(|o| o.board.base_from_flange)
+            .collect();
+        let c: Vec<Iso3> = obs
+            .observations
+            .iter()
+            .map(|o| o.camera_from_target)
+            .collect();
+        let x = handeye::hand_eye(&b, &c, HandEyeMethod::Park).map_err(calib(&obs.robot))?;
+        handeye::base_from_target_given(&x, &b, &c).map_err(calib(&obs.robot))
+    };
+    let w1 = base_from_target(obs1)?;
+    let w2 = base_from_target(obs2)?;
+    let options = GravityOptions::default();
+    let between = resolve_between_robots(&w1, &w2, symmetry, &options);
+    let Some(k) = between.element else {
+        let angles: Vec<String> = symmetry
+            .elements()
+            .iter()
+            .zip(&between.up_angles)
+            .map(|(e, a)| format!("{} {:.1}°", e.name, a.to_degrees()))
+            .collect();
+        return Err(PipelineError::SymmetricTargetBetweenRobots {
+            target: target.describe(),
+            robot1: obs1.robot.clone(),
+            robot2: obs2.robot.clone(),
+            turns: format!("{} ways", symmetry.len()),
+            reason: format!(
+                "the board is tilted {:.1}° out of the horizontal, and the bases' up directions \
+                 seen from the board are apart by {} for the possible labellings (need one \
+                 within {:.0}° and the others {:.0}° further)",
+                between.board_tilt_rad.to_degrees(),
+                angles.join(", "),
+                options.max_up_disagreement_rad.to_degrees(),
+                options.min_up_separation_rad.to_degrees()
+            ),
+        });
+    };
+    tracing::info!(
+        robot = obs2.robot,
+        tilt_deg = between.board_tilt_rad.to_degrees(),
+        "symmetric target: robot 2 labelled by '{}' (gravity)",
+        symmetry.elements()[k].name
+    );
+    for o in &mut obs2.observations {
+        o.camera_from_target = symmetry.relabel_pose(&o.camera_from_target, k);
+        o.board.target_points = symmetry.relabel_points(&o.board.target_points, k);
+    }
+    Ok(())
+}
+
 fn covariance6(m: &Matrix6<f64>) -> [[f64; 6]; 6] {
     let s = (m + m.transpose()) * 0.5;
     let mut out = [[0.0; 6]; 6];
@@ -1093,7 +1394,11 @@ pub fn base_to_base_run(
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let obs1 = observe_robot(ds, &ids[0])?;
-    let obs2 = observe_robot(ds, &ids[1])?;
+    let mut obs2 = observe_robot(ds, &ids[1])?;
+    let symmetry = target.symmetry();
+    if !symmetry.is_trivial() {
+        align_symmetric_between_robots(&target, &symmetry, &obs1, &mut obs2)?;
+    }
     let board_centre = target.centre();
     let (mut result, cameras) = joint_base_to_base([&obs1, &obs2], &board_centre, options, method)?;
     result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;

@@ -29,14 +29,24 @@
 //!      left-handed frame (z out of the board).
 //!    - `cols + rows` even (both odd: black outer squares on a diagonal; both even:
 //!      all four outer squares the same colour): the board looks the same turned by
-//!      180°, so no image can decide, and [`detect_checkerboard`] refuses such specs
-//!      with [`VisionError::AmbiguousOrientation`] (so do `cols == rows` boards).
+//!      180°, so no image can decide between the two labellings. Square boards
+//!      (`cols == rows`) may also look the same turned by 90°: with an even number of
+//!      inner corners per side (odd squares) a quarter turn keeps the parity of every
+//!      square, so all four turns look the same; with an odd number it flips the parity,
+//!      so the colours still tell the quarter turns apart and only the half-turn is left.
+//!      [`detect_checkerboard_up_to_symmetry`] returns such a board's corners in one of
+//!      the labellings the colours allow, together with the board's symmetry
+//!      ([`CheckerboardSpec::symmetry`]); the pipeline chooses each view's labelling from
+//!      the robot motion (`b2b_calib::symmetry`). [`detect_checkerboard`] still refuses
+//!      these specs with [`VisionError::AmbiguousOrientation`]: its callers take the
+//!      labelling as the truth and could not resolve it.
 //!
 //!    Colours are compared pairwise between neighbouring inner squares (each sampled
 //!    at nine points inside the square, interpolated from its four corners), so a
 //!    lighting gradient across the board does not matter; at least 90 % of the pairs
 //!    must agree and the median contrast must be at least [`MIN_SQUARE_CONTRAST`].
 
+use b2b_calib::symmetry::TargetSymmetry;
 use nalgebra::{Point2, Point3};
 use opencv::core::{Point2f, Size, TermCriteria, Vector};
 use opencv::{calib3d, imgproc};
@@ -98,6 +108,18 @@ impl CheckerboardSpec {
     /// exactly when `cols + rows` is odd.
     pub fn orientation_is_unambiguous(&self) -> bool {
         (self.cols + self.rows) % 2 == 1
+    }
+
+    /// The labellings of this board that no image can tell apart (see the module docs):
+    /// only the identity when `cols + rows` is odd; the identity and the half-turn about
+    /// the board centre otherwise; all four quarter turns for square boards with an even
+    /// number of inner corners per side.
+    pub fn symmetry(&self) -> TargetSymmetry {
+        if self.orientation_is_unambiguous() {
+            return TargetSymmetry::trivial(self.corner_count());
+        }
+        let quarter = self.cols == self.rows && self.cols.is_multiple_of(2);
+        TargetSymmetry::grid_turns(self.cols, self.rows, self.square_m, quarter)
     }
 
     /// Corner `id = j * cols + i` in the target frame: `(i * square, j * square, 0)`.
@@ -182,6 +204,30 @@ pub fn detect_checkerboard_with(
 ) -> Result<BoardDetection, VisionError> {
     spec.validate()?;
     check_orientable(spec)?;
+    detect_any(img, spec, methods, refine)
+}
+
+/// [`detect_checkerboard`] for every spec, symmetric ones included: the corners in one
+/// of the labellings the square colours allow, and the labellings no image can tell
+/// apart ([`CheckerboardSpec::symmetry`]; only the identity when `cols + rows` is odd,
+/// and then the detection is exactly [`detect_checkerboard`]'s). The caller must choose
+/// each view's labelling (`b2b_calib::symmetry::resolve_labelling`) before using
+/// `target_points`, `corner_ids` or a pose fitted to them.
+pub fn detect_checkerboard_up_to_symmetry(
+    img: &GrayImage,
+    spec: &CheckerboardSpec,
+) -> Result<(BoardDetection, TargetSymmetry), VisionError> {
+    spec.validate()?;
+    let det = detect_any(img, spec, &DEFAULT_METHODS, true)?;
+    Ok((det, spec.symmetry()))
+}
+
+fn detect_any(
+    img: &GrayImage,
+    spec: &CheckerboardSpec,
+    methods: &[CornerMethod],
+    refine: bool,
+) -> Result<BoardDetection, VisionError> {
     for &method in methods {
         let Some(mut raw) = find_corners(img, spec, method)? else {
             continue;
@@ -196,7 +242,7 @@ pub fn detect_checkerboard_with(
             let w = adaptive_half_window(&raw, spec);
             refine_corners(img, &mut raw, w);
         }
-        let pixels = orient_corners(img, spec, raw)?;
+        let pixels = orient_any(img, spec, raw)?;
         let n = spec.corner_count();
         return Ok(BoardDetection {
             target_points: (0..n).map(|k| spec.target_point(k)).collect(),
@@ -310,10 +356,20 @@ pub fn adaptive_half_window(corners: &[Point2<f64>], spec: &CheckerboardSpec) ->
 pub fn orient_corners(
     img: &GrayImage,
     spec: &CheckerboardSpec,
-    mut corners: Vec<Point2<f64>>,
+    corners: Vec<Point2<f64>>,
 ) -> Result<Vec<Point2<f64>>, VisionError> {
     spec.validate()?;
     check_orientable(spec)?;
+    orient_any(img, spec, corners)
+}
+
+/// [`orient_corners`] for every spec: for a symmetric one, the corners in one of the
+/// labellings of [`CheckerboardSpec::symmetry`] that satisfy the colour rule.
+fn orient_any(
+    img: &GrayImage,
+    spec: &CheckerboardSpec,
+    mut corners: Vec<Point2<f64>>,
+) -> Result<Vec<Point2<f64>>, VisionError> {
     let (c, r) = (spec.cols, spec.rows);
     if corners.len() != c * r {
         return Err(VisionError::TooFewCorners {
@@ -389,10 +445,27 @@ pub fn orient_corners(
     let agree = even_dark as f64 / pairs as f64;
     if agree >= 0.9 {
         Ok(corners)
-    } else if agree <= 0.1 {
+    } else if agree <= 0.1 && spec.orientation_is_unambiguous() {
         // cols + rows is odd: turning by 180° makes the even squares the dark ones.
         corners.reverse();
         Ok(corners)
+    } else if agree <= 0.1 && c == r && c % 2 == 1 {
+        // A square board with an even number of squares per side: a quarter turn flips
+        // the parity of every square. Corner (i, j) becomes (c-1-j, i).
+        let mut turned = corners.clone();
+        for (m, p) in corners.into_iter().enumerate() {
+            let (i, j) = (m % c, m / c);
+            turned[i * c + (c - 1 - j)] = p;
+        }
+        Ok(turned)
+    } else if agree <= 0.1 {
+        // cols + rows even: every turn the board allows keeps the parity of the squares.
+        Err(VisionError::AmbiguousOrientation(format!(
+            "the {c}x{r} board's candidate origins touch white outer-corner squares ({} of \
+             {pairs} neighbouring pairs disagree with the convention): its colours are \
+             inverted with respect to the dataset-format convention, which no turn fixes",
+            pairs - even_dark
+        )))
     } else {
         Err(VisionError::AmbiguousOrientation(format!(
             "square colours are inconsistent: {even_dark} of {pairs} neighbouring pairs say \
@@ -408,7 +481,9 @@ fn check_orientable(spec: &CheckerboardSpec) -> Result<(), VisionError> {
     }
     Err(VisionError::AmbiguousOrientation(format!(
         "a {}x{} board (inner corners; {}x{} squares) looks the same turned by 180°, so its \
-         square colours cannot fix the origin; use a board with cols + rows odd",
+         square colours cannot fix the origin in one image; the offline pipeline decides \
+         it from the robot motion over all captures (detect_checkerboard_up_to_symmetry), \
+         otherwise use a board with cols + rows odd or a ChArUco board",
         spec.cols,
         spec.rows,
         spec.cols + 1,

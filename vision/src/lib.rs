@@ -79,8 +79,11 @@
 //!
 //! OpenCV's detectors return the grid starting at any of its four corners. The
 //! target frame is fixed by handedness (z into the board) and by the square colours;
-//! [`checkerboard`] explains the rule and why boards with `cols + rows` even are
-//! refused as [`VisionError::AmbiguousOrientation`].
+//! [`checkerboard`] explains the rule. Boards with `cols + rows` even look the same
+//! turned by 180° (square ones possibly by 90°): [`detect_checkerboard`] refuses them
+//! as [`VisionError::AmbiguousOrientation`], and
+//! [`detect_checkerboard_up_to_symmetry`] returns their corners in one labelling plus
+//! the board's symmetry, for a caller that decides the labelling from robot motion.
 //!
 //! # Errors
 //!
@@ -101,7 +104,7 @@ pub mod synth;
 
 pub use checkerboard::{
     BoardDetection, CheckerboardSpec, CornerMethod, DEFAULT_METHODS, detect_checkerboard,
-    detect_checkerboard_with,
+    detect_checkerboard_up_to_symmetry, detect_checkerboard_with,
 };
 pub use error::VisionError;
 pub use image::{
