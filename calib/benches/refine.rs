@@ -1,14 +1,16 @@
 //! The joint refinements on realistic problem sizes.
 //!
-//! Goal (issue: foundation): the base-to-base refinement over 2 x 30 captures x
-//! 54 corners in <= 50 ms; with both cameras' intrinsics refined too (issue #18:
-//! intrinsics estimated when a dataset gives none), at most 200 ms more for the
-//! whole estimate. Measured with `-- --quick` on the shared 2-core machine (load
-//! 4.5-7): 45 ms without, 130 ms with the intrinsics; the pipeline's initial
-//! `calibrateCamera` fits add ~40 ms per robot (`pipeline/tests/intrinsics.rs`). Run `cargo bench -p b2b-calib --bench refine` for
-//! numbers; `cargo test --benches` runs each once as a smoke test.
+//! Goal: the whole solve over 2 x 30 captures x 54 corners in <= 50 ms
+//! (`default_estimator_2x30x54`: closed-form seeds with the gross-row screen,
+//! the refinement with its noise model, and the split-half check); with both
+//! cameras' intrinsics refined too, at most 200 ms more. The pipeline's
+//! initial `calibrateCamera` fits add ~40 ms per robot
+//! (`pipeline/tests/intrinsics.rs`). Run `cargo bench -p b2b-calib --bench
+//! refine` for numbers (README); `cargo test --benches` runs each once as a
+//! smoke test.
 
 use b2b_calib::base_to_base::{BaseToBaseInitial, perturb_initial, refine_base_to_base};
+use b2b_calib::estimate::{RobotCaptures, estimate_base_to_base};
 use b2b_calib::pose::perturb_left;
 use b2b_calib::refine::{RefineOptions, refine_hand_eye};
 use b2b_calib::synth::{SynthConfig, random_robot, two_robots};
@@ -56,6 +58,18 @@ fn bench(c: &mut Criterion) {
                 &opts,
             )
             .expect("converges")
+        })
+    });
+
+    // The whole default estimator, as the pipeline runs it.
+    let robots = [0, 1].map(|r| RobotCaptures {
+        camera: &cfg.camera,
+        captures: if r == 0 { &c1 } else { &c2 },
+        camera_from_target: &two.robots[r].camera_from_target,
+    });
+    c.bench_function("default_estimator_2x30x54", |b| {
+        b.iter(|| {
+            estimate_base_to_base([black_box(&robots[0]), &robots[1]], &opts).expect("converges")
         })
     });
 

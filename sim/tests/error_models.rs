@@ -276,10 +276,14 @@ fn plan_views(
     views
 }
 
+/// Geometries by (seed, captures, ChArUco), shared by every structure's test.
+type GeometryCache = std::collections::HashMap<(u64, usize, bool), Geometry>;
+
+/// Per seed: the default's, the limit's and each closed form's mean error.
+type SeedErrors = (f64, f64, [f64; 7]);
+
 fn geometry(seed: u64, n: usize, board: Board) -> Geometry {
-    static CACHE: std::sync::OnceLock<
-        std::sync::Mutex<std::collections::HashMap<(u64, usize, bool), Geometry>>,
-    > = std::sync::OnceLock::new();
+    static CACHE: std::sync::OnceLock<std::sync::Mutex<GeometryCache>> = std::sync::OnceLock::new();
     let key = (seed, n, board == Board::Charuco);
     let cache = CACHE.get_or_init(Default::default);
     if let Some(g) = cache.lock().unwrap().get(&key) {
@@ -579,8 +583,7 @@ fn limit(p: &Problem, structure: Structure) -> Iso3 {
 }
 
 struct CellResult {
-    /// Per seed: the default's, the limit's and each closed form's mean error.
-    per_seed: Vec<(f64, f64, [f64; 7])>,
+    per_seed: Vec<SeedErrors>,
     default_mean: f64,
     limit_mean: f64,
     closed_mean: [f64; 7],
@@ -747,7 +750,7 @@ fn study(structure: Structure) {
                 // Ahead of every closed form and near the limit, judged on the
                 // paired per-seed differences: worse only if the mean
                 // difference exceeds two standard errors (and 2%).
-                let worse = |ratio: f64, other: &dyn Fn(&(f64, f64, [f64; 7])) -> f64| {
+                let worse = |ratio: f64, other: &dyn Fn(&SeedErrors) -> f64| {
                     let d: Vec<f64> = r.per_seed.iter().map(|s| s.0 - ratio * other(s)).collect();
                     let n = d.len() as f64;
                     let mean = d.iter().sum::<f64>() / n;
