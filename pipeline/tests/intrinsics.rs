@@ -6,7 +6,7 @@
 //! data: `datasets/sim-checkerboard-2x12`, whose `camera` blocks are the ones it
 //! was rendered with (the truth) and whose `ground_truth.json` holds the rest.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use b2b_calib::Iso3;
 use b2b_calib::camera::CameraModel;
@@ -15,23 +15,8 @@ use b2b_calib::refine::RefineOptions;
 use b2b_dataset::{Dataset, load_ground_truth, load_reference};
 use b2b_pipeline::{B2bMethod, HandEyeChoice, base_to_base_run, hand_eye, observe_robot};
 
-fn shared_dataset(name: &str) -> PathBuf {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/datasets")
-        .join(name);
-    assert!(
-        p.is_dir(),
-        "shared dataset missing: {} (the tests read it from beside the checkout)",
-        p.display()
-    );
-    p
-}
-
-fn bundled(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../datasets")
-        .join(name)
-}
+mod common;
+use common::*;
 
 /// A copy of a dataset in a temporary folder with every robot's `camera` block
 /// deleted from `dataset.json`; everything else is symlinked, not copied.

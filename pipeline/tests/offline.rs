@@ -1,8 +1,6 @@
 //! The offline pipeline end to end: real images (ViSP's Franka recording), the
 //! simulator's rendered two-robot dataset, and bad input.
 
-use std::path::{Path, PathBuf};
-
 use b2b_calib::Iso3;
 use b2b_calib::estimate::{RobotCaptures, estimate_hand_eye, seed_hand_eye};
 use b2b_calib::pose::{left_difference, pose_distance};
@@ -13,23 +11,8 @@ use b2b_pipeline::{
     B2bMethod, HandEyeChoice, PipelineError, base_to_base, hand_eye, observe_robot, verify,
 };
 
-fn shared_dataset(name: &str) -> PathBuf {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/datasets")
-        .join(name);
-    assert!(
-        p.is_dir(),
-        "shared dataset missing: {} (the tests read it from beside the checkout)",
-        p.display()
-    );
-    p
-}
-
-fn bundled(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../datasets")
-        .join(name)
-}
+mod common;
+use common::*;
 
 /// ViSP's published hand-eye on its own Franka data (a result of another tool,
 /// not the truth). OpenCV's Park lands 0.3 mm / 0.03 deg from it; our Park must be
@@ -217,18 +200,6 @@ fn unknown_robot_and_methods_are_named() {
     let err = "bogus".parse::<HandEyeChoice>().unwrap_err();
     assert!(err.contains("tsai") && err.contains("refined"), "{err}");
     assert!("nope".parse::<B2bMethod>().is_err());
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }
 
 /// One mistyped row (tx off by 65 cm) is left out with its reason, named by

@@ -2,8 +2,6 @@
 //! ground truth and touch points, synthetic scenes with known transforms, and
 //! degenerate input.
 
-use std::path::{Path, PathBuf};
-
 use b2b_calib::Iso3;
 use b2b_calib::camera::CameraModel;
 use b2b_calib::pose::pose_distance;
@@ -17,11 +15,8 @@ use b2b_pipeline::verify;
 use b2b_vision::features::{DepthImage, FeatureMatch};
 use nalgebra::{Point2, Point3, Translation3, UnitQuaternion, Vector3};
 
-fn bundled(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../datasets")
-        .join(name)
-}
+mod common;
+use common::*;
 
 /// A small deterministic generator (no rand in this crate's dev-dependencies).
 struct Rng(u64);

@@ -10,36 +10,8 @@ use b2b_dataset::Dataset;
 use b2b_pipeline::{PipelineError, observe_robot, screen_observations};
 use b2b_vision::VisionError;
 
-fn shared_dataset(name: &str) -> PathBuf {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/datasets")
-        .join(name);
-    assert!(
-        p.is_dir(),
-        "shared dataset missing: {} (the tests read it from beside the checkout)",
-        p.display()
-    );
-    p
-}
-
-fn bundled(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../datasets")
-        .join(name)
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let dest = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &dest);
-        } else {
-            std::fs::copy(e.path(), &dest).unwrap();
-        }
-    }
-}
+mod common;
+use common::*;
 
 /// A copy of the rendered two-robot checkerboard data set in a temporary folder.
 fn sim_copy() -> (tempfile::TempDir, PathBuf) {

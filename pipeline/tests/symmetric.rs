@@ -4,7 +4,7 @@
 //! Each robot's captures get their labelling from the motion; between the robots
 //! gravity decides a tilted board and a flat one is refused.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use b2b_calib::Iso3;
 use b2b_calib::pose::pose_distance;
@@ -15,11 +15,8 @@ use b2b_pipeline::{
     observe_robot,
 };
 
-fn bundled(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../datasets")
-        .join(name)
-}
+mod common;
+use common::*;
 
 /// The committed checkerboard scene with another board, pose and 8 captures per robot.
 fn generate(out: &Path, inner_corners: [u32; 2], board_rpy_deg: [f64; 3], t_z: f64) -> Dataset {

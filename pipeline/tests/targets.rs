@@ -2,18 +2,13 @@
 //! datasets (ChArUco with occlusions, ArUco grid, single AprilTag, the planar 4x3
 //! multimarker and the three-face corner), against their ground truth.
 
-use std::path::{Path, PathBuf};
-
 use b2b_calib::pose::pose_distance;
 use b2b_calib::refine::RefineOptions;
 use b2b_dataset::{Dataset, load_ground_truth};
 use b2b_pipeline::{B2bMethod, PipelineError, TargetSpec, base_to_base, observe_robot};
 
-fn bundled(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../datasets")
-        .join(name)
-}
+mod common;
+use common::*;
 
 /// (folder, default method, least captures used per robot, mm, deg)
 const CASES: [(&str, B2bMethod, usize, f64, f64); 5] = [
@@ -97,18 +92,6 @@ fn methods_must_match_the_target() {
     let err = base_to_base(&mm, B2bMethod::Rgbd, &RefineOptions::default()).unwrap_err();
     assert!(err.to_string().contains("depth"), "{err}");
     assert!(err.to_string().contains("dataset.json"), "{err}");
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }
 
 #[test]
