@@ -69,44 +69,26 @@ pub struct Seed {
     pub rejections: Vec<Option<Rejection>>,
 }
 
-/// The board positions (a point at the board's centre of the seen corners) in
-/// the base by every capture, for the screen.
+/// Where each kept capture puts the board in the base (its pose, and the
+/// centre of the target's corners), for the screen.
 fn board_points_in_base(
     x: &Iso3,
     robot: &RobotCaptures<'_>,
     keep: &[bool],
-) -> Vec<(usize, Iso3, Point3<f64>)> {
+    centre: &Point3<f64>,
+) -> Vec<(usize, Point3<f64>)> {
     robot
         .captures
         .iter()
         .zip(robot.camera_from_target)
         .enumerate()
         .filter(|(i, _)| keep[*i])
-        .map(|(i, (cap, c))| {
-            let n = cap.target_points.len().max(1) as f64;
-            let centre = Point3::from(
-                cap.target_points
-                    .iter()
-                    .fold(nalgebra::Vector3::zeros(), |a, p| a + p.coords)
-                    / n,
-            );
-            let w = cap.base_from_flange * x * c;
-            (i, w, w * centre)
-        })
+        .map(|(i, (cap, c))| (i, cap.base_from_flange * x * c * centre))
         .collect()
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
+    crate::metrics::median(&mut v)
 }
 
 /// Smallest distance that counts as gross: far beyond robot noise (≤ 1 mm) and
@@ -127,6 +109,7 @@ pub fn seed_hand_eye(
             robot.camera_from_target.len()
         )));
     }
+    let centre = target_centre(robot.captures);
     let mut keep = vec![true; n];
     let mut rejections: Vec<Option<Rejection>> = vec![None; n];
     for _ in 0..3 {
@@ -139,13 +122,13 @@ pub fn seed_hand_eye(
             .map(|i| robot.camera_from_target[i])
             .collect();
         let x = handeye::hand_eye_with(&b, &c, HandEyeMethod::Park, &options.motion)?;
-        let points = board_points_in_base(&x, robot, &keep);
+        let points = board_points_in_base(&x, robot, &keep, &centre);
         let median_point = Point3::new(
-            median(points.iter().map(|p| p.2.x).collect()),
-            median(points.iter().map(|p| p.2.y).collect()),
-            median(points.iter().map(|p| p.2.z).collect()),
+            median(points.iter().map(|p| p.1.x).collect()),
+            median(points.iter().map(|p| p.1.y).collect()),
+            median(points.iter().map(|p| p.1.z).collect()),
         );
-        let d: Vec<f64> = points.iter().map(|p| (p.2 - median_point).norm()).collect();
+        let d: Vec<f64> = points.iter().map(|p| (p.1 - median_point).norm()).collect();
         let med = median(d.clone());
         let mad = median(d.iter().map(|v| (v - med).abs()).collect());
         let limit = (med + 8.0 * 1.4826 * mad).max(GROSS_FLOOR_M);
@@ -170,23 +153,8 @@ pub fn seed_hand_eye(
             )));
         }
         if !changed {
-            let ws: Vec<Iso3> = points.iter().map(|p| p.1).collect();
-            let rotation = crate::pose::average_rotations(
-                &ws.iter()
-                    .map(|w| w.rotation)
-                    .collect::<Vec<UnitQuaternion<f64>>>(),
-                None,
-            )?;
-            let w = Iso3::from_parts(
-                nalgebra::Translation3::new(
-                    median(ws.iter().map(|w| w.translation.x).collect()),
-                    median(ws.iter().map(|w| w.translation.y).collect()),
-                    median(ws.iter().map(|w| w.translation.z).collect()),
-                ),
-                rotation,
-            );
             // The board pose of the closed form given its hand-eye (least squares).
-            let w = handeye::base_from_target_given(&x, &b, &c).unwrap_or(w);
+            let w = handeye::base_from_target_given(&x, &b, &c)?;
             return Ok(Seed {
                 flange_from_camera: x,
                 base_from_target: w,
@@ -210,7 +178,8 @@ pub struct HandEyeRun {
     pub rejections: Vec<Option<Rejection>>,
 }
 
-fn kept<T: Clone>(items: &[T], rejections: &[Option<Rejection>]) -> Vec<T> {
+/// The items whose rejection is `None`.
+fn kept<T: Clone, R>(items: &[T], rejections: &[Option<R>]) -> Vec<T> {
     items
         .iter()
         .zip(rejections)
@@ -247,12 +216,7 @@ pub fn estimate_hand_eye(
     )?;
     let rejections = merge(&seed.rejections, &estimate.rejections);
     let mut estimate = estimate;
-    let used: Vec<BoardCapture> = captures
-        .iter()
-        .zip(&estimate.rejections)
-        .filter(|(_, r)| r.is_none())
-        .map(|(c, _)| c.clone())
-        .collect();
+    let used = kept(&captures, &estimate.rejections);
     let split = split_check_hand_eye(robot.camera, &used, &estimate, options);
     if let Some(s) = split {
         estimate.flange_from_camera_covariance *= s.factor;
@@ -303,15 +267,8 @@ pub fn estimate_base_to_base(
         merge(&seeds[1].rejections, &estimate.rejections[1]),
     ];
     let mut estimate = estimate;
-    let used = |caps: &[BoardCapture], r: &[Option<CaptureRejection>]| -> Vec<BoardCapture> {
-        caps.iter()
-            .zip(r)
-            .filter(|(_, r)| r.is_none())
-            .map(|(c, _)| c.clone())
-            .collect()
-    };
-    let u1 = used(&c1, &estimate.rejections[0]);
-    let u2 = used(&c2, &estimate.rejections[1]);
+    let u1 = kept(&c1, &estimate.rejections[0]);
+    let u2 = kept(&c2, &estimate.rejections[1]);
     let split = split_check_base_to_base(
         [robots[0].camera, robots[1].camera],
         [&u1, &u2],
@@ -363,8 +320,7 @@ fn common_mode(
     if systematic.sigma_t_m == 0.0 && systematic.sigma_r_rad == 0.0 {
         return out;
     }
-    let (a, b) = (systematic.sigma_r_rad.powi(2), systematic.sigma_t_m.powi(2));
-    let local = nalgebra::Matrix6::from_diagonal(&nalgebra::Vector6::new(a, a, a, b, b, b));
+    let local = systematic.covariance();
     for (r, caps) in captures.iter().enumerate() {
         let n = caps.len();
         if n == 0 {

@@ -57,6 +57,20 @@ fn norm_samples(c: &Matrix3<f64>, n: usize, rng: &mut StdRng) -> Vec<f64> {
         .collect()
 }
 
+/// The median (the mean of the middle two for an even count; 0 for none). Sorts `v`.
+pub fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
         return 0.0;

@@ -39,6 +39,7 @@ use nalgebra::{
 };
 
 use crate::camera::{CameraModel, N_INTRINSICS};
+use crate::metrics::median;
 use crate::pose::{perturb_left, skew};
 use crate::{CalibError, Iso3};
 
@@ -50,6 +51,13 @@ use crate::{CalibError, Iso3};
 pub struct RobotNoise {
     pub sigma_t_m: f64,
     pub sigma_r_rad: f64,
+}
+
+impl RobotNoise {
+    /// The covariance of `[rx, ry, rz, tx, ty, tz]`: isotropic rotation and translation.
+    pub fn covariance(&self) -> Matrix6<f64> {
+        iso6(self.sigma_r_rad.powi(2), self.sigma_t_m.powi(2))
+    }
 }
 
 impl Default for RobotNoise {
@@ -133,10 +141,6 @@ pub struct RefineOptions {
     pub capture_chi2_limit: f64,
     /// Smallest number of corners a capture must keep to stay in the fit.
     pub min_corners_per_capture: usize,
-    /// Also consider full 6x6 noise covariances (21 parameters per robot;
-    /// off by default: over the error-model study the information criterion
-    /// never chose them, and they double the cost of the noise estimate).
-    pub full_noise_shapes: bool,
     /// Rounds of (reject, estimate the noise, fit) after the first fit; they
     /// stop earlier once the inliers settle. 0: the first fit only.
     pub max_rounds: usize,
@@ -159,7 +163,6 @@ impl Default for RefineOptions {
             // chi-square(6) exceeds 40 with probability 3e-7.
             capture_chi2_limit: 40.0,
             min_corners_per_capture: 4,
-            full_noise_shapes: false,
             max_rounds: 5,
             motion: crate::degeneracy::MotionThresholds::default(),
         }
@@ -174,8 +177,6 @@ pub enum NoiseShape {
     /// Rotations about the base origin and about the flange, and a translation
     /// (3 parameters): joint errors near the base and near the wrist together.
     TwoCentres,
-    /// A full 6x6 covariance in one frame (21 parameters).
-    Full(NoiseFrame),
     /// Given per capture ([`NoiseModel::PerCapture`]).
     Given,
 }
@@ -183,12 +184,8 @@ pub enum NoiseShape {
 impl NoiseShape {
     fn frames(&self) -> &'static [NoiseFrame] {
         match self {
-            NoiseShape::Isotropic(NoiseFrame::Base) | NoiseShape::Full(NoiseFrame::Base) => {
-                &[NoiseFrame::Base]
-            }
-            NoiseShape::Isotropic(NoiseFrame::Flange) | NoiseShape::Full(NoiseFrame::Flange) => {
-                &[NoiseFrame::Flange]
-            }
+            NoiseShape::Isotropic(NoiseFrame::Base) => &[NoiseFrame::Base],
+            NoiseShape::Isotropic(NoiseFrame::Flange) => &[NoiseFrame::Flange],
             NoiseShape::TwoCentres => &[NoiseFrame::Base, NoiseFrame::Flange],
             NoiseShape::Given => &[],
         }
@@ -198,7 +195,6 @@ impl NoiseShape {
         match self {
             NoiseShape::Isotropic(_) => 2.0,
             NoiseShape::TwoCentres => 3.0,
-            NoiseShape::Full(_) => 21.0,
             NoiseShape::Given => 0.0,
         }
     }
@@ -207,7 +203,6 @@ impl NoiseShape {
         match self {
             NoiseShape::Isotropic(f) => format!("isotropic about the {}", f.name()),
             NoiseShape::TwoCentres => "rotations about base and flange".into(),
-            NoiseShape::Full(f) => format!("full 6x6 in the {} frame", f.name()),
             NoiseShape::Given => "given per capture".into(),
         }
     }
@@ -241,10 +236,10 @@ impl FittedNoise {
         }
     }
 
-    fn isotropic(frame: NoiseFrame, sigma_r: f64, sigma_t: f64, sigma_px: f64) -> Self {
+    fn isotropic(frame: NoiseFrame, noise: &RobotNoise, sigma_px: f64) -> Self {
         FittedNoise::new(
             NoiseShape::Isotropic(frame),
-            vec![iso6(sigma_r * sigma_r, sigma_t * sigma_t)],
+            vec![noise.covariance()],
             sigma_px,
         )
     }
@@ -436,11 +431,6 @@ impl Whitening {
     }
 }
 
-struct Linearisation {
-    residuals: DVector<f64>,
-    jacobian: DMatrix<f64>,
-}
-
 /// One capture's residuals split into the part a flange pose error can explain
 /// (its 6-D pose subspace) and the rest, which only corner noise reaches: the
 /// unknowns move each capture's camera pose only, so they never reach the rest.
@@ -593,30 +583,6 @@ impl Engine {
         Some((r, j, g))
     }
 
-    /// Whitened residuals and Jacobian of the captures in the fit, stacked.
-    fn linearise(&self) -> Option<Linearisation> {
-        let m = self.n_residuals();
-        let n = self.n_params();
-        let mut r = DVector::zeros(m);
-        let mut j = DMatrix::zeros(m, n);
-        let (poses, cameras) = self.current();
-        let mut row = 0;
-        for (ci, cap) in self.captures.iter().enumerate() {
-            if !cap.used() {
-                continue;
-            }
-            let (rc, jc, _) = self.capture_block(ci, &cap.inlier, &poses, &cameras, true, true)?;
-            let rows = rc.len();
-            r.rows_mut(row, rows).copy_from(&rc);
-            j.rows_mut(row, rows).copy_from(&jc);
-            row += rows;
-        }
-        Some(Linearisation {
-            residuals: r,
-            jacobian: j,
-        })
-    }
-
     /// The whitened normal equations `JᵀJ`, `Jᵀr` and `rᵀr`, accumulated capture
     /// by capture (a dense product per capture instead of one tall matrix).
     fn normal_equations(&self) -> Option<(DMatrix<f64>, DVector<f64>, f64)> {
@@ -639,10 +605,14 @@ impl Engine {
 
     /// A capture's residuals split along its pose subspace, over `corners`.
     /// `None` when a corner projects behind the camera.
-    fn span(&self, ci: usize, corners: &[bool]) -> Option<Span> {
-        let (poses, cameras) = self.current();
+    fn span(
+        &self,
+        ci: usize,
+        corners: &[bool],
+        (poses, cameras): &(Vec<Iso3>, Vec<CameraModel>),
+    ) -> Option<Span> {
         let cap = &self.captures[ci];
-        let (r, _, g) = self.capture_block(ci, corners, &poses, &cameras, false, false)?;
+        let (r, _, g) = self.capture_block(ci, corners, poses, cameras, false, false)?;
         let rows = r.len();
         if rows < 6 {
             return Some(Span {
@@ -690,10 +660,11 @@ impl Engine {
             for cap in &mut self.captures {
                 cap.rejection = None;
             }
+            let current = self.current();
             let all: Vec<Option<Span>> = (0..self.captures.len())
                 .map(|ci| {
                     let corners = vec![true; self.captures[ci].capture.pixels.len()];
-                    self.span(ci, &corners)
+                    self.span(ci, &corners, &current)
                 })
                 .collect();
             for robot in 0..n_robots {
@@ -779,11 +750,12 @@ impl Engine {
 
     fn inlier_spans(&self) -> Result<Vec<(usize, Span)>, CalibError> {
         let mut out = Vec::new();
+        let current = self.current();
         for (ci, cap) in self.captures.iter().enumerate() {
             if !cap.used() {
                 continue;
             }
-            let s = self.span(ci, &cap.inlier).ok_or_else(|| {
+            let s = self.span(ci, &cap.inlier, &current).ok_or_else(|| {
                 CalibError::Optimisation(format!("capture {ci}: a corner went behind its camera"))
             })?;
             out.push((ci, s));
@@ -840,9 +812,7 @@ impl Engine {
                 NoiseModel::PerCapture(_) => {
                     FittedNoise::new(NoiseShape::Given, vec![], sigma2.sqrt())
                 }
-                NoiseModel::Fixed(frame) => {
-                    FittedNoise::isotropic(*frame, rn.sigma_r_rad, rn.sigma_t_m, sigma2.sqrt())
-                }
+                NoiseModel::Fixed(frame) => FittedNoise::isotropic(*frame, rn, sigma2.sqrt()),
                 NoiseModel::Estimated => {
                     // The unknowns absorb part of the pose subspaces' energy: a
                     // robot's share of them is put back (restricted likelihood).
@@ -856,16 +826,12 @@ impl Engine {
                     // Candidates, chosen by the Bayesian information criterion so
                     // that a richer shape must earn its parameters.
                     let penalty = 0.5 * dims.max(2.0).ln();
-                    let start = iso6(rn.sigma_r_rad.powi(2), rn.sigma_t_m.powi(2));
-                    let mut shapes = vec![
+                    let start = rn.covariance();
+                    let shapes = [
                         NoiseShape::Isotropic(NoiseFrame::Base),
                         NoiseShape::Isotropic(NoiseFrame::Flange),
                         NoiseShape::TwoCentres,
                     ];
-                    if options.full_noise_shapes && mine.len() >= 8 {
-                        shapes.push(NoiseShape::Full(NoiseFrame::Base));
-                        shapes.push(NoiseShape::Full(NoiseFrame::Flange));
-                    }
                     let mut best: Option<(f64, FittedNoise)> = None;
                     for shape in shapes {
                         // Each shape's EM starts where it ended in the previous
@@ -900,8 +866,7 @@ impl Engine {
                     }
                     best.map(|(_, f)| f).unwrap_or(FittedNoise::isotropic(
                         NoiseFrame::Base,
-                        rn.sigma_r_rad,
-                        rn.sigma_t_m,
+                        rn,
                         sigma2.sqrt(),
                     ))
                 }
@@ -1069,7 +1034,7 @@ fn em_components(
                 let (a1, b1) = iso(&block(1));
                 vec![iso6(a0, floor), iso6(a1, b1)]
             }
-            NoiseShape::Full(_) | NoiseShape::Given => {
+            NoiseShape::Given => {
                 let c = block(0);
                 vec![(c + c.transpose()) * 0.5 + Matrix6::identity() * floor]
             }
@@ -1167,19 +1132,6 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Compressed {
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
         self.evaluate().map(|(_, j)| j)
-    }
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
     }
 }
 
@@ -1341,17 +1293,15 @@ pub(crate) fn solve(
             engine.n_params()
         )));
     }
-    let lin = engine
-        .linearise()
+    let (a, _, _) = engine
+        .normal_equations()
         .ok_or_else(|| CalibError::Optimisation("a corner went behind its camera".into()))?;
-    let a = lin.jacobian.transpose() * &lin.jacobian;
     let mut covariance = a.try_inverse().ok_or_else(|| {
         CalibError::Optimisation(
             "normal matrix is singular: the data do not determine every unknown".into(),
         )
     })?;
     covariance = (&covariance + covariance.transpose()) * 0.5;
-    let _ = lin.residuals;
     let errors = engine.corner_errors();
     let per_capture = engine
         .captures

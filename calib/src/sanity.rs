@@ -64,6 +64,7 @@
 use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::degeneracy::{check_finite, check_same_length};
+use crate::metrics::median;
 use crate::{CalibError, Iso3};
 
 /// The noise the checks allow for: standard deviations per pose (per axis).
@@ -220,19 +221,6 @@ fn pitch_sigma(m: &Motion, n: SideNoise, lever: f64) -> f64 {
         + n.rot * n.rot * (t * t + lever * lever)
         + (n.scale_rel * m.pitch()).powi(2);
     (st2 + (m.t_perp() * sigma_axis).powi(2)).sqrt()
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 /// One pair's comparison: (i, j, angle score, angle diff, pitch score and diff

@@ -31,6 +31,7 @@
 use std::time::Instant;
 
 use b2b_calib::camera::CameraModel;
+use b2b_calib::metrics::median;
 use b2b_calib::metrics::{predicted_error, workspace_points};
 use b2b_calib::pose::{adjoint, average_rotations, geodesic_angle, left_difference};
 use b2b_calib::procrustes::{RansacOptions, ransac_rigid};
@@ -386,18 +387,6 @@ pub fn fit_camera_pair(
         spread_m,
         inlier_points1,
     })
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n == 0 {
-        0.0
-    } else if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 /// The robust combination of per-pair `base1_from_base2` estimates.
@@ -899,11 +888,7 @@ pub fn rgbd_base_to_base(
     // an error of the flange pose common to all captures (the arm's systematic
     // error, `systematic`, about the flange) acts exactly like an error of the
     // hand-eye: it is added to the hand-eye covariance.
-    let (a, b) = (
-        refine.systematic.sigma_r_rad.powi(2),
-        refine.systematic.sigma_t_m.powi(2),
-    );
-    let common = Matrix6::from_diagonal(&nalgebra::Vector6::new(a, a, a, b, b, b));
+    let common = refine.systematic.covariance();
     let mut run = rgbd_base_to_base_with_hand_eyes(
         ds,
         [

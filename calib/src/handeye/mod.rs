@@ -433,17 +433,7 @@ fn finite_result(x: Iso3, what: &str) -> Result<Iso3, CalibError> {
 }
 
 fn median(values: impl Iterator<Item = f64>) -> f64 {
-    let mut v: Vec<f64> = values.collect();
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let m = v.len() / 2;
-    if v.len() % 2 == 1 {
-        v[m]
-    } else {
-        0.5 * (v[m - 1] + v[m])
-    }
+    crate::metrics::median(&mut values.collect::<Vec<f64>>())
 }
 
 /// One relative motion `A X = X B` between captures `i < j`.
