@@ -14,7 +14,7 @@
 //! | `b2b/agent/{robot}/hand_eye` | [`HandEyeUpdate`] | agent, when its captures allow it |
 //! | `b2b/agent/{robot}/status` | [`AgentStatus`] | agent, on every change |
 //! | `b2b/agent/{robot}/history` | queryable: every capture so far, for a (re)started coordinator | agent |
-//! | `b2b/coordinator/result` | [`crate::CalibrationResult`] | coordinator |
+//! | `b2b/coordinator/result` | [`crate::CalibrationResult`], sender [`COORDINATOR`] | coordinator |
 //! | `b2b/coordinator/alive` | liveliness token | coordinator |
 
 use serde::{Deserialize, Serialize};
@@ -30,6 +30,10 @@ pub const KEY_ROOT: &str = "b2b";
 pub fn agent_key(robot: &str, topic: &str) -> String {
     format!("{KEY_ROOT}/agent/{robot}/{topic}")
 }
+
+/// The sender id in the envelopes the coordinator publishes (not a robot id a
+/// cart can take: agents' keys live under `b2b/agent/`).
+pub const COORDINATOR: &str = "coordinator";
 
 /// The key the coordinator publishes results on.
 pub fn result_key() -> String {

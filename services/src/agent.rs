@@ -15,6 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use crate::bus::{self, Bus};
 use anyhow::Context;
 use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
@@ -27,9 +28,6 @@ use b2b_protocol::messages::{
     Intrinsics, agent_key, result_key,
 };
 use b2b_protocol::{CalibrationResult, Pose};
-use zenoh::Wait;
-
-use crate::bus;
 
 /// The persisted sequence counter of one agent.
 #[derive(Debug)]
@@ -39,11 +37,16 @@ pub struct Sequence {
 }
 
 impl Sequence {
-    /// Continues from the number stored in `dir` (or starts at 1).
+    /// Continues from the number stored in `dir` for agent `robot` (or starts at 1).
     pub fn open(dir: &Path, robot: &str) -> anyhow::Result<Sequence> {
+        Sequence::open_named(dir, &format!("agent-{robot}"))
+    }
+
+    /// Continues from the number stored in `dir/{name}.seq` (or starts at 1).
+    pub fn open_named(dir: &Path, name: &str) -> anyhow::Result<Sequence> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create state folder {}", dir.display()))?;
-        let path = dir.join(format!("agent-{robot}.seq"));
+        let path = dir.join(format!("{name}.seq"));
         let next = match std::fs::read_to_string(&path) {
             Ok(text) => {
                 text.trim()
@@ -310,264 +313,41 @@ pub fn run_replay(
     run_agent(&agent, &mut source, stop)
 }
 
-/// Publishes one source's captures onto the bus (captures, hand-eye, status,
-/// history), then waits for the coordinator's result. Returns it when it came.
+/// Publishes one source's captures onto a zenoh session (captures, hand-eye,
+/// status, history), then waits for the coordinator's result. Returns it when
+/// it came.
 pub fn run_agent(
     opts: &AgentOptions,
     source: &mut dyn CaptureSource,
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_robot_id(&opts.robot)?;
-    let seq = Arc::new(Sequence::open(&opts.state_dir, &opts.robot)?);
-    let session = bus::open(bus::config(opts.zenoh.as_deref(), bus::Role::Agent)?)?;
-    let robot = opts.robot.clone();
+    let bus = Arc::new(bus::ZenohBus::open(
+        opts.zenoh.as_deref(),
+        bus::Role::Agent,
+    )?);
+    run_agent_on(bus, opts, source, stop)
+}
 
-    let history: Arc<Mutex<Vec<Vec<u8>>>> = Arc::new(Mutex::new(Vec::new()));
-    let history_for_queries = Arc::clone(&history);
-    let history_key = agent_key(&robot, "history");
-    let reply_key = history_key.clone();
-    let _queryable = session
-        .declare_queryable(&history_key)
-        .callback(move |query| {
-            let items = history_for_queries
-                .lock()
-                .map(|h| h.clone())
-                .unwrap_or_default();
-            for bytes in items {
-                if let Err(e) = query.reply(&reply_key, bytes).wait() {
-                    tracing::warn!("history reply failed: {e}");
-                }
-            }
-        })
-        .wait()
-        .map_err(|e| anyhow::anyhow!("cannot declare {history_key}: {e}"))?;
-    let results = session
-        .declare_subscriber(result_key())
-        .wait()
-        .map_err(|e| anyhow::anyhow!("cannot subscribe to results: {e}"))?;
-
-    let status = Arc::new(Mutex::new(AgentStatus {
-        state: AgentState::Starting,
-        good: 0,
-        rejected: 0,
-        published: 0,
-        rotation_diversity_deg: 0.0,
-        enough_data: false,
-        message: source.describe(),
-    }));
-    let status_key = agent_key(&robot, "status");
-    let publish_status = {
-        let session = session.clone();
-        let status = Arc::clone(&status);
-        let seq = Arc::clone(&seq);
-        let robot = robot.clone();
-        let key = status_key.clone();
-        move || -> anyhow::Result<()> {
-            let body = status
-                .lock()
-                .map_err(|_| anyhow::anyhow!("status lock poisoned"))?
-                .clone();
-            let env = Envelope::new(&robot, seq.take()?, body);
-            session
-                .put(&key, bus::encode(&env))
-                .wait()
-                .map_err(|e| anyhow::anyhow!("publish {key}: {e}"))
-        }
-    };
-    // Heartbeat: the status twice a second until the agent ends.
-    let done = Arc::new(AtomicBool::new(false));
-    let heartbeat = {
-        let done = Arc::clone(&done);
-        let publish = publish_status.clone();
-        std::thread::spawn(move || {
-            while !done.load(Ordering::SeqCst) {
-                if let Err(e) = publish() {
-                    tracing::warn!("status heartbeat: {e:#}");
-                }
-                std::thread::sleep(Duration::from_millis(500));
-            }
-        })
-    };
-
-    let bar = if opts.progress {
-        let bar = match source.expected() {
-            Some(n) => indicatif::ProgressBar::new(n),
-            None => indicatif::ProgressBar::no_length(),
-        };
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        bar.set_prefix(robot.clone());
-        bar
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
-
-    let capture_key = agent_key(&robot, "capture");
-    let hand_eye_key = agent_key(&robot, "hand_eye");
-    let mut obs: Option<RobotObservations> = None;
-    let mut flange_from_camera = None;
-    let mut progress = Progress::default();
-    let thresholds = MotionThresholds::default();
-    let run = (|| -> anyhow::Result<()> {
-        let mut published = 0u64;
-        loop {
-            if stop.load(Ordering::SeqCst) {
-                anyhow::bail!("interrupted after {published} captures");
-            }
-            let started = Instant::now();
-            let Some(cap) = source.next(&progress, stop)? else {
-                break;
-            };
-            let obs = obs.get_or_insert_with(|| RobotObservations {
-                robot: robot.clone(),
-                camera: cap.camera.clone(),
-                observations: vec![],
-                rejected: vec![],
-                detect_ms: 0.0,
-                estimated_intrinsics: None,
-            });
-            let mut msg = Capture {
-                index: cap.index,
-                controller_time_s: cap.controller_time_s,
-                image: cap.image.clone(),
-                base_from_flange: Pose::from_isometry(&cap.base_from_flange),
-                camera: intrinsics(&cap.camera),
-                observation: None,
-                rejected: None,
-                base_from_target: None,
-                features: cap.features.clone(),
-            };
-            match &cap.observed {
-                Ok(o) => {
-                    msg.observation = Some(board_observation(o));
-                    if let Some(x) = flange_from_camera {
-                        let t = cap.base_from_flange * x * o.camera_from_target;
-                        msg.base_from_target = Some(Pose::from_isometry(&t));
-                        progress.base_from_target.push(t);
-                    }
-                    obs.observations.push(o.clone());
-                    progress.good_poses.push(cap.base_from_flange);
-                }
-                Err(r) => {
-                    msg.rejected = Some(r.reason.clone());
-                    obs.rejected.push(r.clone());
-                }
-            }
-            if opts.rerun.is_enabled() {
-                let base = b2b_viz::Base::One;
-                let logged = opts
-                    .rerun
-                    .log_capture(base, &msg)
-                    .and_then(|()| match &cap.pixels {
-                        Some(p) => opts.rerun.log_image(
-                            base,
-                            b2b_viz::ImageView {
-                                pixels: p,
-                                width: cap.camera.width,
-                                height: cap.camera.height,
-                                format: b2b_viz::PixelFormat::Gray,
-                            },
-                        ),
-                        None => Ok(()),
-                    });
-                if let Err(e) = logged {
-                    tracing::warn!("rerun: {e}");
-                }
-            }
-            let bytes = bus::encode(&Envelope::new(&robot, seq.take()?, msg));
-            history
-                .lock()
-                .map_err(|_| anyhow::anyhow!("history lock poisoned"))?
-                .push(bytes.clone());
-            session
-                .put(&capture_key, bytes)
-                .wait()
-                .map_err(|e| anyhow::anyhow!("publish {capture_key}: {e}"))?;
-            published += 1;
-
-            // A hand-eye as soon as the motions allow one.
-            let poses: Vec<_> = obs
-                .observations
-                .iter()
-                .map(|o| o.board.base_from_flange)
-                .collect();
-            let motion = check_motions(&poses, &thresholds);
-            if motion.is_ok()
-                && let Ok(he) = hand_eye(obs, HandEyeChoice::Refined, &opts.refine)
-            {
-                flange_from_camera = Some(he.estimate.flange_from_camera);
-                let update = HandEyeUpdate {
-                    flange_from_camera: he.result.flange_from_camera,
-                    covariance: he.result.covariance,
-                    captures_used: obs.observations.len(),
-                    reprojection_rms_px: he.result.reprojection_rms_px,
-                };
-                progress.hand_eye = Some(update.clone());
-                if let Err(e) = opts.rerun.log_hand_eye(
-                    b2b_viz::Base::One,
-                    &he.estimate.flange_from_camera,
-                    &intrinsics(&cap.camera),
-                ) {
-                    tracing::warn!("rerun: {e}");
-                }
-                session
-                    .put(
-                        &hand_eye_key,
-                        bus::encode(&Envelope::new(&robot, seq.take()?, update)),
-                    )
-                    .wait()
-                    .map_err(|e| anyhow::anyhow!("publish {hand_eye_key}: {e}"))?;
-            }
-            progress.good = obs.observations.len();
-            progress.rejected = obs.rejected.len();
-            {
-                let mut s = status
-                    .lock()
-                    .map_err(|_| anyhow::anyhow!("status lock poisoned"))?;
-                s.state = AgentState::Capturing;
-                s.good = obs.observations.len();
-                s.rejected = obs.rejected.len();
-                s.published = published;
-                s.rotation_diversity_deg = motion.as_ref().map_or(0.0, |m| m.max_axis_angle_deg);
-                s.enough_data = motion.is_ok() && obs.observations.len() >= 10;
-                s.message = match &cap.observed {
-                    Ok(_) => format!("capture {}: board found", cap.index),
-                    Err(r) => format!("capture {} rejected: {}", cap.index, r.reason),
-                };
-                bar.set_message(format!(
-                    "good {} rejected {} diversity {:.0} deg {}",
-                    s.good,
-                    s.rejected,
-                    s.rotation_diversity_deg,
-                    if s.enough_data {
-                        "enough data"
-                    } else {
-                        "need more data"
-                    }
-                ));
-                if let Err(r) = &cap.observed {
-                    bar.println(format!(
-                        "{robot}: capture {} rejected: {}",
-                        cap.index, r.reason
-                    ));
-                }
-            }
-            publish_status()?;
-            bar.inc(1);
-            let spent = started.elapsed();
-            if spent < opts.pace {
-                std::thread::sleep(opts.pace - spent);
-            }
-        }
-        Ok(())
-    })();
+/// [`run_agent`] on any bus.
+pub fn run_agent_on(
+    bus: Arc<dyn Bus>,
+    opts: &AgentOptions,
+    source: &mut dyn CaptureSource,
+    stop: &AtomicBool,
+) -> anyhow::Result<Option<CalibrationResult>> {
+    b2b_protocol::messages::validate_robot_id(&opts.robot)?;
+    let link = AgentLink::open(bus, &opts.robot, &opts.state_dir, source.describe())?;
+    let results = link.status.bus.subscribe(&result_key())?;
+    let bar = progress_bar(opts.progress, source.expected(), &opts.robot);
+    let mut captures = CaptureLoop::default();
+    let run = captures.run(&link, opts, source, stop, &bar);
     bar.finish();
+    let robot = &opts.robot;
     if let Some(line) = source.summary() {
         eprintln!("{robot}: {line}");
     }
-    if let Some(o) = &obs {
+    if let Some(o) = &captures.observations {
         for r in &o.rejected {
             eprintln!(
                 "{robot}: rejected {} (row {}): {}",
@@ -577,53 +357,366 @@ pub fn run_agent(
             );
         }
     }
-    {
-        let mut s = status
+    link.status.update(|s| match &run {
+        Ok(()) => {
+            s.state = AgentState::Finished;
+            s.message = "all captures published".into();
+        }
+        Err(e) => {
+            s.state = AgentState::Failed;
+            s.message = format!("{e:#}");
+        }
+    })?;
+    link.status.publish()?;
+    run?;
+    // Stay reachable (history, heartbeat) until the coordinator answers.
+    Ok(wait_for_result(&*results, opts.wait_result, stop))
+}
+
+/// The status message of one agent, published on every change and as a heartbeat.
+#[derive(Clone)]
+struct StatusLink {
+    bus: Arc<dyn Bus>,
+    robot: String,
+    seq: Arc<Sequence>,
+    status: Arc<Mutex<AgentStatus>>,
+}
+
+impl StatusLink {
+    fn update(&self, change: impl FnOnce(&mut AgentStatus)) -> anyhow::Result<()> {
+        let mut s = self
+            .status
             .lock()
             .map_err(|_| anyhow::anyhow!("status lock poisoned"))?;
-        match &run {
-            Ok(()) => {
-                s.state = AgentState::Finished;
-                s.message = "all captures published".into();
+        change(&mut s);
+        Ok(())
+    }
+
+    fn publish(&self) -> anyhow::Result<()> {
+        let body = self
+            .status
+            .lock()
+            .map_err(|_| anyhow::anyhow!("status lock poisoned"))?
+            .clone();
+        self.send("status", body)
+    }
+
+    /// Publishes a message of this agent under `b2b/agent/{robot}/{topic}`,
+    /// with the next sequence number.
+    fn send<T: serde::Serialize + b2b_protocol::messages::Validate>(
+        &self,
+        topic: &str,
+        body: T,
+    ) -> anyhow::Result<()> {
+        let key = agent_key(&self.robot, topic);
+        let envelope = Envelope::new(&self.robot, self.seq.take()?, body);
+        Ok(bus::publish(&*self.bus, &key, &envelope)?)
+    }
+}
+
+/// One agent's presence on the bus: its status (with a heartbeat twice a
+/// second) and the `history` queryable serving every capture published so far.
+/// Dropping it stops the heartbeat.
+struct AgentLink {
+    status: StatusLink,
+    history: Arc<Mutex<Vec<Vec<u8>>>>,
+    _queryable: bus::Declaration,
+    done: Arc<AtomicBool>,
+    heartbeat: Option<std::thread::JoinHandle<()>>,
+}
+
+/// Time between two heartbeat status messages.
+const HEARTBEAT: Duration = Duration::from_millis(500);
+
+impl AgentLink {
+    fn open(
+        bus: Arc<dyn Bus>,
+        robot: &str,
+        state_dir: &Path,
+        describe: String,
+    ) -> anyhow::Result<AgentLink> {
+        let seq = Arc::new(Sequence::open(state_dir, robot)?);
+        let history: Arc<Mutex<Vec<Vec<u8>>>> = Arc::new(Mutex::new(Vec::new()));
+        let served = Arc::clone(&history);
+        let queryable = bus.serve(
+            &agent_key(robot, "history"),
+            Arc::new(move || served.lock().map(|h| h.clone()).unwrap_or_default()),
+        )?;
+        let status = StatusLink {
+            bus,
+            robot: robot.to_owned(),
+            seq,
+            status: Arc::new(Mutex::new(AgentStatus {
+                state: AgentState::Starting,
+                good: 0,
+                rejected: 0,
+                published: 0,
+                rotation_diversity_deg: 0.0,
+                enough_data: false,
+                message: describe,
+            })),
+        };
+        let done = Arc::new(AtomicBool::new(false));
+        let heartbeat = {
+            let done = Arc::clone(&done);
+            let status = status.clone();
+            std::thread::spawn(move || {
+                while !done.load(Ordering::SeqCst) {
+                    if let Err(e) = status.publish() {
+                        tracing::warn!("status heartbeat: {e:#}");
+                    }
+                    std::thread::sleep(HEARTBEAT);
+                }
+            })
+        };
+        Ok(AgentLink {
+            status,
+            history,
+            _queryable: queryable,
+            done,
+            heartbeat: Some(heartbeat),
+        })
+    }
+
+    /// Publishes a capture and keeps it for the history queryable.
+    fn publish_capture(&self, msg: Capture) -> anyhow::Result<()> {
+        let key = agent_key(&self.status.robot, "capture");
+        let bytes = bus::encode(
+            &key,
+            &Envelope::new(&self.status.robot, self.status.seq.take()?, msg),
+        )?;
+        self.history
+            .lock()
+            .map_err(|_| anyhow::anyhow!("history lock poisoned"))?
+            .push(bytes.clone());
+        self.status.bus.put(&key, bytes)?;
+        Ok(())
+    }
+}
+
+impl Drop for AgentLink {
+    fn drop(&mut self) {
+        self.done.store(true, Ordering::SeqCst);
+        if let Some(h) = self.heartbeat.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+fn progress_bar(show: bool, expected: Option<u64>, robot: &str) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = match expected {
+        Some(n) => indicatif::ProgressBar::new(n),
+        None => indicatif::ProgressBar::no_length(),
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_prefix(robot.to_owned());
+    bar
+}
+
+/// Good captures before the status says "enough data" (with the motion checks passed).
+const ENOUGH_CAPTURES: usize = 10;
+
+/// What the capture loop has gathered.
+#[derive(Default)]
+struct CaptureLoop {
+    observations: Option<RobotObservations>,
+    flange_from_camera: Option<nalgebra::Isometry3<f64>>,
+    progress: Progress,
+    published: u64,
+}
+
+impl CaptureLoop {
+    fn run(
+        &mut self,
+        link: &AgentLink,
+        opts: &AgentOptions,
+        source: &mut dyn CaptureSource,
+        stop: &AtomicBool,
+        bar: &indicatif::ProgressBar,
+    ) -> anyhow::Result<()> {
+        loop {
+            if stop.load(Ordering::SeqCst) {
+                anyhow::bail!("interrupted after {} captures", self.published);
             }
-            Err(e) => {
-                s.state = AgentState::Failed;
-                s.message = format!("{e:#}");
+            let started = Instant::now();
+            let Some(cap) = source.next(&self.progress, stop)? else {
+                return Ok(());
+            };
+            self.capture(link, opts, &cap, bar)?;
+            bar.inc(1);
+            let spent = started.elapsed();
+            if spent < opts.pace {
+                std::thread::sleep(opts.pace - spent);
             }
         }
     }
-    publish_status()?;
-    let outcome = match run {
-        Err(e) => Err(e),
-        Ok(()) => {
-            // Stay reachable (history, heartbeat) until the coordinator answers.
-            let deadline = Instant::now() + opts.wait_result;
-            let mut result = None;
-            while Instant::now() < deadline && !stop.load(Ordering::SeqCst) {
-                match results.recv_timeout(Duration::from_millis(200)) {
-                    Ok(Some(sample)) => {
-                        let bytes = sample.payload().to_bytes();
-                        match serde_json::from_slice::<CalibrationResult>(&bytes) {
-                            Ok(r) if r.validate().is_ok() => {
-                                result = Some(r);
-                                break;
-                            }
-                            _ => tracing::warn!("ignored an invalid result message"),
-                        }
-                    }
-                    Ok(None) => {}
-                    Err(e) => {
-                        tracing::warn!("result subscriber: {e}");
-                        break;
-                    }
+
+    /// One capture: published, recorded, folded into the hand-eye and the status.
+    fn capture(
+        &mut self,
+        link: &AgentLink,
+        opts: &AgentOptions,
+        cap: &SourceCapture,
+        bar: &indicatif::ProgressBar,
+    ) -> anyhow::Result<()> {
+        let robot = &opts.robot;
+        let obs = self.observations.get_or_insert_with(|| RobotObservations {
+            robot: robot.clone(),
+            camera: cap.camera.clone(),
+            observations: vec![],
+            rejected: vec![],
+            detect_ms: 0.0,
+            estimated_intrinsics: None,
+        });
+        let mut msg = Capture {
+            index: cap.index,
+            controller_time_s: cap.controller_time_s,
+            image: cap.image.clone(),
+            base_from_flange: Pose::from_isometry(&cap.base_from_flange),
+            camera: intrinsics(&cap.camera),
+            observation: None,
+            rejected: None,
+            base_from_target: None,
+            features: cap.features.clone(),
+        };
+        match &cap.observed {
+            Ok(o) => {
+                msg.observation = Some(board_observation(o));
+                if let Some(x) = self.flange_from_camera {
+                    let t = cap.base_from_flange * x * o.camera_from_target;
+                    msg.base_from_target = Some(Pose::from_isometry(&t));
+                    self.progress.base_from_target.push(t);
                 }
+                obs.observations.push(o.clone());
+                self.progress.good_poses.push(cap.base_from_flange);
             }
-            Ok(result)
+            Err(r) => {
+                msg.rejected = Some(r.reason.clone());
+                obs.rejected.push(r.clone());
+            }
         }
-    };
-    done.store(true, Ordering::SeqCst);
-    let _ = heartbeat.join();
-    outcome
+        record(opts, cap, &msg);
+        link.publish_capture(msg)?;
+        self.published += 1;
+
+        // A hand-eye as soon as the motions allow one.
+        let poses: Vec<_> = obs
+            .observations
+            .iter()
+            .map(|o| o.board.base_from_flange)
+            .collect();
+        let motion = check_motions(&poses, &MotionThresholds::default());
+        if motion.is_ok()
+            && let Ok(he) = hand_eye(obs, HandEyeChoice::Refined, &opts.refine)
+        {
+            self.flange_from_camera = Some(he.estimate.flange_from_camera);
+            let update = HandEyeUpdate {
+                flange_from_camera: he.result.flange_from_camera,
+                covariance: he.result.covariance,
+                captures_used: obs.observations.len(),
+                reprojection_rms_px: he.result.reprojection_rms_px,
+            };
+            self.progress.hand_eye = Some(update.clone());
+            if let Err(e) = opts.rerun.log_hand_eye(
+                b2b_viz::Base::One,
+                &he.estimate.flange_from_camera,
+                &intrinsics(&cap.camera),
+            ) {
+                tracing::warn!("rerun: {e}");
+            }
+            link.status.send("hand_eye", update)?;
+        }
+        self.progress.good = obs.observations.len();
+        self.progress.rejected = obs.rejected.len();
+        let (good, rejected, published) =
+            (self.progress.good, self.progress.rejected, self.published);
+        link.status.update(|s| {
+            s.state = AgentState::Capturing;
+            s.good = good;
+            s.rejected = rejected;
+            s.published = published;
+            s.rotation_diversity_deg = motion.as_ref().map_or(0.0, |m| m.max_axis_angle_deg);
+            s.enough_data = motion.is_ok() && good >= ENOUGH_CAPTURES;
+            s.message = match &cap.observed {
+                Ok(_) => format!("capture {}: board found", cap.index),
+                Err(r) => format!("capture {} rejected: {}", cap.index, r.reason),
+            };
+            bar.set_message(format!(
+                "good {} rejected {} diversity {:.0} deg {}",
+                s.good,
+                s.rejected,
+                s.rotation_diversity_deg,
+                if s.enough_data {
+                    "enough data"
+                } else {
+                    "need more data"
+                }
+            ));
+        })?;
+        if let Err(r) = &cap.observed {
+            bar.println(format!(
+                "{robot}: capture {} rejected: {}",
+                cap.index, r.reason
+            ));
+        }
+        link.status.publish()
+    }
+}
+
+/// Logs a capture (and its image, when the source has it) to the recording.
+fn record(opts: &AgentOptions, cap: &SourceCapture, msg: &Capture) {
+    if !opts.rerun.is_enabled() {
+        return;
+    }
+    let base = b2b_viz::Base::One;
+    let logged = opts
+        .rerun
+        .log_capture(base, msg)
+        .and_then(|()| match &cap.pixels {
+            Some(p) => opts.rerun.log_image(
+                base,
+                b2b_viz::ImageView {
+                    pixels: p,
+                    width: cap.camera.width,
+                    height: cap.camera.height,
+                    format: b2b_viz::PixelFormat::Gray,
+                },
+            ),
+            None => Ok(()),
+        });
+    if let Err(e) = logged {
+        tracing::warn!("rerun: {e}");
+    }
+}
+
+/// The coordinator's result, validated, or `None` when `wait` passed (or
+/// `stop` was set) without one. Invalid result messages are logged and ignored.
+fn wait_for_result(
+    results: &dyn bus::Inbox,
+    wait: Duration,
+    stop: &AtomicBool,
+) -> Option<CalibrationResult> {
+    let deadline = Instant::now() + wait;
+    while Instant::now() < deadline && !stop.load(Ordering::SeqCst) {
+        match results.recv_timeout(Duration::from_millis(200)) {
+            Ok(Some(m)) => match bus::decode::<CalibrationResult>(&m.key, &m.payload) {
+                Ok(envelope) => return Some(envelope.body),
+                Err(reason) => tracing::warn!("ignored a result message: {reason}"),
+            },
+            Ok(None) => {}
+            Err(e) => {
+                tracing::warn!("{e}");
+                return None;
+            }
+        }
+    }
+    None
 }
 
 #[cfg(test)]

@@ -1,24 +1,92 @@
-//! The zenoh side of the services: sessions, and messages on and off the wire.
+//! The bus between agents and the coordinator: a small trait, zenoh behind it,
+//! and messages on and off the wire.
 //!
-//! Sessions are zenoh peers. Without `--zenoh CONFIG` the coordinator listens on
+//! The agent and coordinator loops talk to a [`Bus`]: put, subscribe, query,
+//! answer queries, announce liveliness. [`ZenohBus`] is the one the services
+//! run on, between processes. [`MemoryBus`] delivers within one process, so the
+//! loops' logic can be tested without processes or sockets.
+//!
+//! zenoh sessions are peers. Without `--zenoh CONFIG` the coordinator listens on
 //! [`DEFAULT_ENDPOINT`] (loopback) and agents connect to it, with multicast
 //! scouting off, so nothing leaves the machine unless a configuration says so. A
 //! configuration file is passed to zenoh as it is: peers or routers, TLS, access
 //! control, user/password authentication are all zenoh's own JSON5 keys.
 //!
-//! Payloads are JSON [`Envelope`]s. [`decode`] checks every message before anyone
-//! trusts it and names the key and the problem when it does not.
+//! Payloads are JSON [`Envelope`]s, results included. [`encode`] refuses what
+//! does not serialise instead of sending an empty payload; [`decode`] checks
+//! every message before anyone trusts it and names the key and the problem when
+//! it does not.
 
 use std::path::Path;
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
-use anyhow::Context;
-use b2b_protocol::messages::{Envelope, KEY_ROOT, Validate};
+use b2b_protocol::messages::{COORDINATOR, Envelope, KEY_ROOT, Validate};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use zenoh::Wait;
+use zenoh::query::{ConsolidationMode, QueryTarget};
 
 /// Where the coordinator listens by default.
 pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+
+/// What went wrong on the bus. Each names the key or the configuration.
+#[derive(Debug, thiserror::Error)]
+pub enum BusError {
+    #[error("{path}: not a usable zenoh configuration: {reason}")]
+    Config { path: String, reason: String },
+    #[error("cannot open the zenoh session: {reason}")]
+    Open { reason: String },
+    #[error("cannot publish on {key}: {reason}")]
+    Publish { key: String, reason: String },
+    #[error("cannot serialise the message for {key}: {reason}")]
+    Encode { key: String, reason: String },
+    #[error("cannot subscribe to {key}: {reason}")]
+    Subscribe { key: String, reason: String },
+    #[error("the subscription to {key} closed")]
+    Closed { key: String },
+    #[error("query {key}: {reason}")]
+    Query { key: String, reason: String },
+    #[error("cannot declare {key}: {reason}")]
+    Declare { key: String, reason: String },
+}
+
+/// One message as it arrived: its key and its bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Received {
+    pub key: String,
+    pub payload: Vec<u8>,
+}
+
+/// Keeps a declaration (a queryable, a liveliness token) alive; dropping it
+/// undeclares.
+pub type Declaration = Box<dyn std::any::Any + Send + Sync>;
+
+/// What a queryable answers: the payloads to send at the time of the query.
+pub type Replies = Arc<dyn Fn() -> Vec<Vec<u8>> + Send + Sync>;
+
+/// The messages of one subscription, in arrival order.
+pub trait Inbox: Send {
+    /// The next message; `Ok(None)` when `timeout` passed without one.
+    fn recv_timeout(&self, timeout: Duration) -> Result<Option<Received>, BusError>;
+}
+
+/// What the agent and the coordinator need of a bus.
+pub trait Bus: Send + Sync {
+    /// Publishes `payload` under `key`.
+    fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), BusError>;
+    /// Receives everything published under the key expression (`*` one chunk,
+    /// `**` any number).
+    fn subscribe(&self, key_expr: &str) -> Result<Box<dyn Inbox>, BusError>;
+    /// Asks every queryable matching `selector` and collects the replies that
+    /// arrive within `timeout`.
+    fn query(&self, selector: &str, timeout: Duration) -> Result<Vec<Received>, BusError>;
+    /// Answers queries on `key` with `replies()`, each reply under `key`.
+    fn serve(&self, key: &str, replies: Replies) -> Result<Declaration, BusError>;
+    /// Declares a liveliness token on `key`, gone when dropped.
+    fn announce(&self, key: &str) -> Result<Declaration, BusError>;
+}
 
 /// Which side opens the session (decides the default endpoints).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -29,16 +97,19 @@ pub enum Role {
 
 /// The session configuration: the file when one is given, otherwise loopback
 /// peers as described in the module docs.
-pub fn config(file: Option<&Path>, role: Role) -> anyhow::Result<zenoh::Config> {
+pub fn config(file: Option<&Path>, role: Role) -> Result<zenoh::Config, BusError> {
     if let Some(path) = file {
-        return zenoh::Config::from_file(path).map_err(|e| {
-            anyhow::anyhow!("{}: not a usable zenoh configuration: {e}", path.display())
+        return zenoh::Config::from_file(path).map_err(|e| BusError::Config {
+            path: path.display().to_string(),
+            reason: e.to_string(),
         });
     }
     let mut c = zenoh::Config::default();
     let set = |c: &mut zenoh::Config, key: &str, value: &str| {
-        c.insert_json5(key, value)
-            .map_err(|e| anyhow::anyhow!("zenoh config {key}: {e}"))
+        c.insert_json5(key, value).map_err(|e| BusError::Config {
+            path: format!("(built-in) {key}"),
+            reason: e.to_string(),
+        })
     };
     set(&mut c, "mode", r#""peer""#)?;
     set(&mut c, "scouting/multicast/enabled", "false")?;
@@ -60,18 +131,279 @@ pub fn config(file: Option<&Path>, role: Role) -> anyhow::Result<zenoh::Config> 
     Ok(c)
 }
 
-/// Opens a session.
-pub fn open(config: zenoh::Config) -> anyhow::Result<zenoh::Session> {
-    zenoh::open(config)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("cannot open the zenoh session: {e}"))
-        .context("zenoh")
+/// Opens a zenoh session.
+pub fn open(config: zenoh::Config) -> Result<zenoh::Session, BusError> {
+    zenoh::open(config).wait().map_err(|e| BusError::Open {
+        reason: e.to_string(),
+    })
 }
 
-/// Serialises a message.
-pub fn encode<T: Serialize>(envelope: &Envelope<T>) -> Vec<u8> {
-    // A message of plain numbers and strings always serialises.
-    serde_json::to_vec(envelope).unwrap_or_default()
+/// The bus between processes: one zenoh session.
+#[derive(Debug, Clone)]
+pub struct ZenohBus {
+    session: zenoh::Session,
+}
+
+impl ZenohBus {
+    /// Opens a session with [`config`].
+    pub fn open(file: Option<&Path>, role: Role) -> Result<ZenohBus, BusError> {
+        Ok(ZenohBus {
+            session: open(config(file, role)?)?,
+        })
+    }
+
+    /// The session itself, for what the trait does not cover.
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+}
+
+struct ZenohInbox {
+    key: String,
+    subscriber:
+        zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+}
+
+impl Inbox for ZenohInbox {
+    fn recv_timeout(&self, timeout: Duration) -> Result<Option<Received>, BusError> {
+        match self.subscriber.recv_timeout(timeout) {
+            Ok(Some(sample)) => Ok(Some(Received {
+                key: sample.key_expr().as_str().to_owned(),
+                payload: sample.payload().to_bytes().into_owned(),
+            })),
+            Ok(None) => Ok(None),
+            Err(_) => Err(BusError::Closed {
+                key: self.key.clone(),
+            }),
+        }
+    }
+}
+
+impl Bus for ZenohBus {
+    fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), BusError> {
+        self.session
+            .put(key, payload)
+            .wait()
+            .map_err(|e| BusError::Publish {
+                key: key.to_owned(),
+                reason: e.to_string(),
+            })
+    }
+
+    fn subscribe(&self, key_expr: &str) -> Result<Box<dyn Inbox>, BusError> {
+        let subscriber = self
+            .session
+            .declare_subscriber(key_expr.to_owned())
+            .wait()
+            .map_err(|e| BusError::Subscribe {
+                key: key_expr.to_owned(),
+                reason: e.to_string(),
+            })?;
+        Ok(Box::new(ZenohInbox {
+            key: key_expr.to_owned(),
+            subscriber,
+        }))
+    }
+
+    fn query(&self, selector: &str, timeout: Duration) -> Result<Vec<Received>, BusError> {
+        let replies = self
+            .session
+            .get(selector)
+            .target(QueryTarget::All)
+            .consolidation(ConsolidationMode::None)
+            .timeout(timeout)
+            .wait()
+            .map_err(|e| BusError::Query {
+                key: selector.to_owned(),
+                reason: e.to_string(),
+            })?;
+        let mut out = Vec::new();
+        while let Ok(reply) = replies.recv() {
+            if let Ok(sample) = reply.result() {
+                out.push(Received {
+                    key: sample.key_expr().as_str().to_owned(),
+                    payload: sample.payload().to_bytes().into_owned(),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    fn serve(&self, key: &str, replies: Replies) -> Result<Declaration, BusError> {
+        let reply_key = key.to_owned();
+        let queryable = self
+            .session
+            .declare_queryable(key.to_owned())
+            .callback(move |query| {
+                for bytes in replies() {
+                    if let Err(e) = query.reply(&reply_key, bytes).wait() {
+                        tracing::warn!("reply on {reply_key} failed: {e}");
+                    }
+                }
+            })
+            .wait()
+            .map_err(|e| BusError::Declare {
+                key: key.to_owned(),
+                reason: e.to_string(),
+            })?;
+        Ok(Box::new(queryable))
+    }
+
+    fn announce(&self, key: &str) -> Result<Declaration, BusError> {
+        let token = self
+            .session
+            .liveliness()
+            .declare_token(key.to_owned())
+            .wait()
+            .map_err(|e| BusError::Declare {
+                key: key.to_owned(),
+                reason: e.to_string(),
+            })?;
+        Ok(Box::new(token))
+    }
+}
+
+/// Whether `key` matches the key expression `expr` (`*`: one chunk; `**`: any
+/// number of chunks, none included).
+pub fn key_matches(expr: &str, key: &str) -> bool {
+    fn go(e: &[&str], k: &[&str]) -> bool {
+        match (e.first(), k.first()) {
+            (None, None) => true,
+            (Some(&"**"), _) => go(&e[1..], k) || (!k.is_empty() && go(e, &k[1..])),
+            (Some(&"*"), Some(_)) => go(&e[1..], &k[1..]),
+            (Some(a), Some(b)) if a == b => go(&e[1..], &k[1..]),
+            _ => false,
+        }
+    }
+    let e: Vec<&str> = expr.split('/').collect();
+    let k: Vec<&str> = key.split('/').collect();
+    go(&e, &k)
+}
+
+type Subscribers = Vec<(String, mpsc::Sender<Received>)>;
+
+/// A bus within one process: what is put reaches every matching subscription
+/// of the same `MemoryBus` (clones share it). For tests of the loops; the
+/// services themselves run on [`ZenohBus`].
+#[derive(Clone, Default)]
+pub struct MemoryBus {
+    subscribers: Arc<Mutex<Subscribers>>,
+    queryables: Arc<Mutex<Vec<(String, Replies)>>>,
+}
+
+impl std::fmt::Debug for MemoryBus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MemoryBus").finish_non_exhaustive()
+    }
+}
+
+impl MemoryBus {
+    pub fn new() -> MemoryBus {
+        MemoryBus::default()
+    }
+}
+
+struct MemoryInbox {
+    key: String,
+    receiver: mpsc::Receiver<Received>,
+}
+
+impl Inbox for MemoryInbox {
+    fn recv_timeout(&self, timeout: Duration) -> Result<Option<Received>, BusError> {
+        match self.receiver.recv_timeout(timeout) {
+            Ok(m) => Ok(Some(m)),
+            Err(mpsc::RecvTimeoutError::Timeout) => Ok(None),
+            Err(mpsc::RecvTimeoutError::Disconnected) => Err(BusError::Closed {
+                key: self.key.clone(),
+            }),
+        }
+    }
+}
+
+fn poisoned(key: &str) -> BusError {
+    BusError::Publish {
+        key: key.to_owned(),
+        reason: "the in-process bus lock is poisoned".into(),
+    }
+}
+
+impl Bus for MemoryBus {
+    fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), BusError> {
+        let mut subs = self.subscribers.lock().map_err(|_| poisoned(key))?;
+        // A dropped subscription is forgotten.
+        subs.retain(|(expr, tx)| {
+            !key_matches(expr, key)
+                || tx
+                    .send(Received {
+                        key: key.to_owned(),
+                        payload: payload.clone(),
+                    })
+                    .is_ok()
+        });
+        Ok(())
+    }
+
+    fn subscribe(&self, key_expr: &str) -> Result<Box<dyn Inbox>, BusError> {
+        let (tx, rx) = mpsc::channel();
+        self.subscribers
+            .lock()
+            .map_err(|_| poisoned(key_expr))?
+            .push((key_expr.to_owned(), tx));
+        Ok(Box::new(MemoryInbox {
+            key: key_expr.to_owned(),
+            receiver: rx,
+        }))
+    }
+
+    fn query(&self, selector: &str, _timeout: Duration) -> Result<Vec<Received>, BusError> {
+        let served: Vec<(String, Replies)> = self
+            .queryables
+            .lock()
+            .map_err(|_| poisoned(selector))?
+            .iter()
+            .filter(|(key, _)| key_matches(selector, key))
+            .map(|(k, r)| (k.clone(), Arc::clone(r)))
+            .collect();
+        Ok(served
+            .into_iter()
+            .flat_map(|(key, replies)| {
+                replies().into_iter().map(move |payload| Received {
+                    key: key.clone(),
+                    payload,
+                })
+            })
+            .collect())
+    }
+
+    fn serve(&self, key: &str, replies: Replies) -> Result<Declaration, BusError> {
+        self.queryables
+            .lock()
+            .map_err(|_| poisoned(key))?
+            .push((key.to_owned(), replies));
+        // Queryables of the in-process bus last as long as the bus.
+        Ok(Box::new(()))
+    }
+
+    fn announce(&self, _key: &str) -> Result<Declaration, BusError> {
+        Ok(Box::new(()))
+    }
+}
+
+/// Serialises a message for `key`.
+pub fn encode<T: Serialize>(key: &str, envelope: &Envelope<T>) -> Result<Vec<u8>, BusError> {
+    serde_json::to_vec(envelope).map_err(|e| BusError::Encode {
+        key: key.to_owned(),
+        reason: e.to_string(),
+    })
+}
+
+/// Serialises and publishes a message.
+pub fn publish<T: Serialize>(
+    bus: &dyn Bus,
+    key: &str,
+    envelope: &Envelope<T>,
+) -> Result<(), BusError> {
+    bus.put(key, encode(key, envelope)?)
 }
 
 /// The robot and topic of an agent key `b2b/agent/{robot}/{topic}`.
@@ -81,16 +413,28 @@ pub fn parse_agent_key(key: &str) -> Option<(&str, &str)> {
     Some((robot, topic))
 }
 
-/// Parses and validates a message received under `key`.
+/// Who may send under `key`: the robot of an agent key, [`COORDINATOR`] under
+/// `b2b/coordinator/`.
+pub fn sender_of(key: &str) -> Option<&str> {
+    if let Some((robot, _)) = parse_agent_key(key) {
+        return Some(robot);
+    }
+    key.strip_prefix(KEY_ROOT)?
+        .strip_prefix("/coordinator/")
+        .map(|_| COORDINATOR)
+}
+
+/// Parses and validates a message received under `key`: the schema version,
+/// that its sender is the one the key names, and its numbers.
 pub fn decode<T: DeserializeOwned + Validate>(
     key: &str,
     bytes: &[u8],
 ) -> Result<Envelope<T>, String> {
-    let (robot, _) = parse_agent_key(key).ok_or_else(|| format!("{key}: not an agent key"))?;
+    let sender = sender_of(key).ok_or_else(|| format!("{key}: not a key of the service"))?;
     let envelope: Envelope<T> =
         serde_json::from_slice(bytes).map_err(|e| format!("{key}: not a valid message: {e}"))?;
     envelope
-        .validate(robot)
+        .validate(sender)
         .map_err(|e| format!("{key}: rejected: {e}"))?;
     Ok(envelope)
 }
@@ -108,11 +452,12 @@ mod tests {
         );
         assert_eq!(parse_agent_key("other/agent/robot1/capture"), None);
         assert_eq!(parse_agent_key("b2b/agent/robot1"), None);
+        assert_eq!(sender_of("b2b/coordinator/result"), Some(COORDINATOR));
+        assert_eq!(sender_of("b2b/elsewhere/result"), None);
     }
 
-    #[test]
-    fn decode_rejects_garbage_and_impostors() {
-        let status = AgentStatus {
+    fn status() -> AgentStatus {
+        AgentStatus {
             state: AgentState::Capturing,
             good: 1,
             rejected: 0,
@@ -120,13 +465,92 @@ mod tests {
             rotation_diversity_deg: 10.0,
             enough_data: false,
             message: String::new(),
-        };
-        let bytes = encode(&Envelope::new("robot1", 1, status));
-        assert!(decode::<AgentStatus>("b2b/agent/robot1/status", &bytes).is_ok());
+        }
+    }
+
+    #[test]
+    fn decode_rejects_garbage_and_impostors() {
+        let key = "b2b/agent/robot1/status";
+        let bytes = encode(key, &Envelope::new("robot1", 1, status())).unwrap();
+        assert!(decode::<AgentStatus>(key, &bytes).is_ok());
         let err = decode::<AgentStatus>("b2b/agent/robot2/status", &bytes).unwrap_err();
         assert!(err.contains("robot2"), "{err}");
-        let err = decode::<AgentStatus>("b2b/agent/robot1/status", b"{").unwrap_err();
+        let err = decode::<AgentStatus>(key, b"{").unwrap_err();
         assert!(err.contains("not a valid message"), "{err}");
+        // An agent cannot speak for the coordinator.
+        let err = decode::<AgentStatus>("b2b/coordinator/result", &bytes).unwrap_err();
+        assert!(err.contains("coordinator"), "{err}");
+    }
+
+    #[test]
+    fn encode_refuses_what_does_not_serialise() {
+        // JSON object keys must be strings: a map keyed by pairs does not serialise.
+        let mut body = std::collections::BTreeMap::new();
+        body.insert((1, 2), 3);
+        let envelope = Envelope {
+            schema: 1,
+            robot: "robot1".into(),
+            seq: 1,
+            body,
+        };
+        let err = encode("b2b/agent/robot1/x", &envelope).unwrap_err();
+        assert!(
+            matches!(&err, BusError::Encode { key, .. } if key == "b2b/agent/robot1/x"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn key_expressions_match_like_zenoh() {
+        assert!(key_matches("b2b/agent/**", "b2b/agent/robot1/capture"));
+        assert!(key_matches(
+            "b2b/agent/*/history",
+            "b2b/agent/robot1/history"
+        ));
+        assert!(!key_matches(
+            "b2b/agent/*/history",
+            "b2b/agent/robot1/capture"
+        ));
+        assert!(!key_matches("b2b/agent/*", "b2b/agent/robot1/capture"));
+        assert!(key_matches("b2b/**", "b2b"));
+        assert!(key_matches(
+            "b2b/coordinator/result",
+            "b2b/coordinator/result"
+        ));
+        assert!(!key_matches(
+            "b2b/coordinator/result",
+            "b2b/coordinator/results"
+        ));
+    }
+
+    #[test]
+    fn the_memory_bus_delivers_to_matching_subscriptions_and_serves_queries() {
+        let bus = MemoryBus::new();
+        let all = bus.subscribe("b2b/agent/**").unwrap();
+        let other = bus.subscribe("b2b/coordinator/*").unwrap();
+        bus.put("b2b/agent/robot1/status", b"a".to_vec()).unwrap();
+        let got = all
+            .recv_timeout(Duration::from_millis(10))
+            .unwrap()
+            .unwrap();
+        assert_eq!(got.key, "b2b/agent/robot1/status");
+        assert_eq!(got.payload, b"a");
+        assert_eq!(other.recv_timeout(Duration::from_millis(10)).unwrap(), None);
+        let _q = bus
+            .serve(
+                "b2b/agent/robot1/history",
+                Arc::new(|| vec![b"x".to_vec(), b"y".to_vec()]),
+            )
+            .unwrap();
+        let replies = bus
+            .query("b2b/agent/*/history", Duration::from_millis(10))
+            .unwrap();
+        assert_eq!(replies.len(), 2);
+        assert!(
+            bus.query("b2b/agent/robot2/history", Duration::from_millis(10))
+                .unwrap()
+                .is_empty()
+        );
     }
 
     #[test]

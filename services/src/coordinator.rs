@@ -15,13 +15,13 @@ use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
-    AgentStatus, Capture, HandEyeUpdate, KEY_ROOT, agent_key, coordinator_alive_key, result_key,
+    AgentStatus, COORDINATOR, Capture, Envelope, HandEyeUpdate, KEY_ROOT, agent_key,
+    coordinator_alive_key, result_key,
 };
 use nalgebra::Point3;
-use zenoh::Wait;
-use zenoh::query::{ConsolidationMode, QueryTarget};
 
-use crate::bus;
+use crate::agent::Sequence;
+use crate::bus::{self, Bus};
 use crate::store::{Sample, Store};
 
 /// Options of `coordinator run`.
@@ -81,23 +81,14 @@ fn handle(
 }
 
 fn catch_up(
-    session: &zenoh::Session,
+    bus: &dyn Bus,
     store: &mut Store,
     counters: &mut Counters,
     selector: &str,
 ) -> anyhow::Result<()> {
-    let replies = session
-        .get(selector)
-        .target(QueryTarget::All)
-        .consolidation(ConsolidationMode::None)
-        .timeout(Duration::from_secs(2))
-        .wait()
-        .map_err(|e| anyhow::anyhow!("query {selector}: {e}"))?;
-    while let Ok(reply) = replies.recv() {
-        if let Ok(sample) = reply.result() {
-            let key = sample.key_expr().as_str().replace("/history", "/capture");
-            handle(store, counters, &key, &sample.payload().to_bytes())?;
-        }
+    for reply in bus.query(selector, Duration::from_secs(2))? {
+        let key = reply.key.replace("/history", "/capture");
+        handle(store, counters, &key, &reply.payload)?;
     }
     Ok(())
 }
@@ -171,9 +162,22 @@ fn compute_rgbd(
     Ok(run.result)
 }
 
-/// Runs until every agent has finished (or `stop` is set), then computes,
-/// publishes and returns the result.
+/// Runs on a zenoh session (see [`bus::config`]) until every agent has
+/// finished (or `stop` is set), then computes, publishes and returns the result.
 pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationResult, Counters)> {
+    let bus = bus::ZenohBus::open(opts.zenoh.as_deref(), bus::Role::Coordinator)?;
+    let out = run_on(&bus, opts, stop)?;
+    // Give the result a moment to leave before the session closes.
+    std::thread::sleep(Duration::from_millis(300));
+    Ok(out)
+}
+
+/// [`run`] on any bus.
+pub fn run_on(
+    bus: &dyn Bus,
+    opts: &RunOptions,
+    stop: &AtomicBool,
+) -> anyhow::Result<(CalibrationResult, Counters)> {
     let mut store = Store::open(&opts.state_dir)?;
     if store.skipped_lines > 0 {
         eprintln!(
@@ -181,44 +185,25 @@ pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationR
             store.skipped_lines
         );
     }
-    let session = bus::open(bus::config(opts.zenoh.as_deref(), bus::Role::Coordinator)?)?;
-    let _alive = session
-        .liveliness()
-        .declare_token(coordinator_alive_key())
-        .wait()
-        .map_err(|e| anyhow::anyhow!("liveliness token: {e}"))?;
-    let subscriber = session
-        .declare_subscriber(format!("{KEY_ROOT}/agent/**"))
-        .wait()
-        .map_err(|e| anyhow::anyhow!("cannot subscribe to the agents: {e}"))?;
+    let seq = Sequence::open_named(&opts.state_dir, COORDINATOR)?;
+    let _alive = bus.announce(&coordinator_alive_key())?;
+    let inbox = bus.subscribe(&format!("{KEY_ROOT}/agent/**"))?;
     let mut counters = Counters::default();
-    catch_up(
-        &session,
-        &mut store,
-        &mut counters,
-        &agent_key("*", "history"),
-    )?;
+    catch_up(bus, &mut store, &mut counters, &agent_key("*", "history"))?;
     let mut last_check = Instant::now();
     loop {
         if store.complete(opts.robots) || stop.load(Ordering::SeqCst) {
             break;
         }
-        match subscriber.recv_timeout(Duration::from_millis(100)) {
-            Ok(Some(sample)) => handle(
-                &mut store,
-                &mut counters,
-                sample.key_expr().as_str(),
-                &sample.payload().to_bytes(),
-            )?,
-            Ok(None) => {}
-            Err(e) => anyhow::bail!("agent subscriber closed: {e}"),
+        if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))? {
+            handle(&mut store, &mut counters, &m.key, &m.payload)?;
         }
         if last_check.elapsed() > Duration::from_millis(500) {
             last_check = Instant::now();
             for robot in store.missing() {
                 tracing::info!("asking {robot} for captures missed");
                 catch_up(
-                    &session,
+                    bus,
                     &mut store,
                     &mut counters,
                     &agent_key(&robot, "history"),
@@ -227,12 +212,10 @@ pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationR
         }
     }
     let result = compute(&store, opts)?;
-    let bytes = serde_json::to_vec(&result)?;
-    session
-        .put(result_key(), bytes)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("publish result: {e}"))?;
-    // Give the message a moment to leave before the session closes.
-    std::thread::sleep(Duration::from_millis(300));
+    bus::publish(
+        bus,
+        &result_key(),
+        &Envelope::new(COORDINATOR, seq.take()?, result.clone()),
+    )?;
     Ok((result, counters))
 }

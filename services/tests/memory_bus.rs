@@ -1,0 +1,122 @@
+//! The agent and coordinator loops without processes or sockets: two agents
+//! replaying the simulator's two-robot dataset and a coordinator, as threads of
+//! one process on the in-process bus. Their result equals the offline
+//! `calibrate`, as it does over zenoh between processes (`tests/live.rs`): the
+//! loops depend on the [`Bus`] trait, not on the transport.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use b2b_calib::refine::RefineOptions;
+use b2b_protocol::CalibrationResult;
+use b2b_protocol::messages::{COORDINATOR, result_key};
+use b2b_services::agent::{AgentOptions, ReplaySource, run_agent_on};
+use b2b_services::bus::{Bus, MemoryBus};
+use b2b_services::coordinator::{RunOptions, run_on};
+
+fn dataset() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
+}
+
+fn offline_result(dir: &Path) -> CalibrationResult {
+    let out = dir.join("OFFLINE.json");
+    let status = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["calibrate", "--method", "board", "--dataset"])
+        .arg(dataset())
+        .arg("--out")
+        .arg(&out)
+        .stdout(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+}
+
+#[test]
+fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = Arc::new(MemoryBus::new());
+    let results = bus.subscribe(&result_key()).unwrap();
+    // A watchdog: if the loops stall, stop them so that the test fails
+    // instead of hanging.
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = Arc::clone(&stop);
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_secs(180));
+            stop.store(true, Ordering::SeqCst);
+        });
+    }
+    let stop = &*stop;
+    let (coordinator, agents) = std::thread::scope(|s| {
+        let coordinator = s.spawn(|| {
+            let opts = RunOptions {
+                zenoh: None,
+                state_dir: dir.path().join("coordinator"),
+                robots: 2,
+                order: None,
+                refine: RefineOptions::default(),
+                method: b2b_pipeline::B2bMethod::Board,
+                rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
+            };
+            run_on(&*bus, &opts, stop).unwrap()
+        });
+        let agents: Vec<_> = ["robot1", "robot2"]
+            .into_iter()
+            .map(|robot| {
+                let bus: Arc<dyn Bus> = bus.clone();
+                let dir = &dir;
+                s.spawn(move || {
+                    let opts = AgentOptions {
+                        robot: robot.into(),
+                        zenoh: None,
+                        state_dir: dir.path().join(robot),
+                        pace: Duration::ZERO,
+                        wait_result: Duration::from_secs(120),
+                        progress: false,
+                        refine: RefineOptions::default(),
+                        rerun: Arc::new(b2b_viz::Recorder::disabled()),
+                    };
+                    let mut source = ReplaySource::open(&dataset(), robot).unwrap();
+                    run_agent_on(bus, &opts, &mut source, stop).unwrap()
+                })
+            })
+            .collect();
+        (
+            coordinator.join().unwrap(),
+            agents
+                .into_iter()
+                .map(|a| a.join().unwrap())
+                .collect::<Vec<_>>(),
+        )
+    });
+    let (result, counters) = coordinator;
+    assert_eq!(counters.rejected, 0);
+    let offline = offline_result(dir.path());
+    for i in 0..3 {
+        assert!(
+            (result.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9,
+            "{result:?} vs {offline:?}"
+        );
+    }
+    for i in 0..4 {
+        assert!((result.base1_from_base2.q[i] - offline.base1_from_base2.q[i]).abs() < 1e-9);
+    }
+    assert_eq!(result.captures.used, offline.captures.used);
+    // Every agent received the coordinator's result, as published.
+    for got in agents {
+        assert_eq!(got.as_ref(), Some(&result));
+    }
+    // The result travels in an envelope from the coordinator, like every message.
+    let m = results
+        .recv_timeout(Duration::from_secs(1))
+        .unwrap()
+        .unwrap();
+    let envelope: serde_json::Value = serde_json::from_slice(&m.payload).unwrap();
+    assert_eq!(envelope["robot"], COORDINATOR);
+    assert!(envelope["seq"].as_u64().unwrap() >= 1);
+    assert!(envelope["body"]["T_base1_base2"].is_object());
+}
