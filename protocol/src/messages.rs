@@ -168,6 +168,11 @@ pub struct BoardObservation {
     /// Per-corner reprojection residual of the board pose (px).
     pub residuals_px: Vec<f64>,
     pub rms_px: f64,
+    /// The centre of the whole target in its own frame (m): the mean of all its
+    /// model points, seen in this capture or not. Every path (offline, live,
+    /// replay) predicts touch errors around this one point.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_centre: Option<[f64; 3]>,
 }
 
 /// One capture: the flange pose (with the controller's timestamp), the board
@@ -316,6 +321,9 @@ impl Validate for Capture {
                     });
                 }
                 finite("observation.target_points", &o.target_points.concat())?;
+                if let Some(c) = &o.target_centre {
+                    finite("observation.target_centre", c)?;
+                }
                 finite("observation.pixels", &o.pixels.concat())?;
                 finite("observation.residuals_px", &o.residuals_px)?;
                 finite("observation.rms_px", &[o.rms_px])
@@ -410,6 +418,7 @@ mod tests {
                 camera_from_target: Pose::IDENTITY,
                 residuals_px: vec![0.1; 4],
                 rms_px: 0.1,
+                target_centre: Some([0.1, 0.05, 0.0]),
             }),
             rejected: None,
             base_from_target: None,

@@ -144,6 +144,7 @@ fn richer_inputs_add_plots_and_the_output_is_deterministic() {
             camera_from_target: Pose::from_isometry(&camera_from_target),
             residuals_px: vec![0.1; 4],
             rms_px: 0.1,
+            target_centre: None,
         }),
         rejected: None,
         base_from_target: None,

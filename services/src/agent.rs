@@ -143,6 +143,8 @@ pub struct SourceCapture {
     /// Local features lifted with the aligned depth (RGB-D method), when the
     /// source has depth and was asked for them.
     pub features: Option<b2b_protocol::messages::FeatureSet>,
+    /// The centre of the whole target in its frame (all its model points).
+    pub target_centre: nalgebra::Point3<f64>,
 }
 
 /// Where captures come from: a dataset replay, the simulated cart, or a real arm.
@@ -258,6 +260,7 @@ impl CaptureSource for ReplaySource {
             observed: observe_capture(&self.ds, &self.setup, cap),
             pixels: None,
             features,
+            target_centre: self.setup.target.centre(),
         }))
     }
 }
@@ -274,7 +277,7 @@ fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
     }
 }
 
-fn board_observation(o: &Observation) -> BoardObservation {
+fn board_observation(o: &Observation, target_centre: &nalgebra::Point3<f64>) -> BoardObservation {
     BoardObservation {
         target_points: o
             .board
@@ -286,6 +289,7 @@ fn board_observation(o: &Observation) -> BoardObservation {
         camera_from_target: Pose::from_isometry(&o.camera_from_target),
         residuals_px: o.residuals_px.clone(),
         rms_px: o.pnp_rms_px,
+        target_centre: Some(target_centre.coords.into()),
     }
 }
 
@@ -587,7 +591,7 @@ impl CaptureLoop {
         };
         match &cap.observed {
             Ok(o) => {
-                msg.observation = Some(board_observation(o));
+                msg.observation = Some(board_observation(o, &cap.target_centre));
                 if let Some(x) = self.flange_from_camera {
                     let t = cap.base_from_flange * x * o.camera_from_target;
                     msg.base_from_target = Some(Pose::from_isometry(&t));

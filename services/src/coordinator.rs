@@ -18,7 +18,6 @@ use b2b_protocol::messages::{
     AgentStatus, COORDINATOR, Capture, Envelope, HandEyeUpdate, KEY_ROOT, agent_key,
     coordinator_alive_key, result_key,
 };
-use nalgebra::Point3;
 
 use crate::agent::Sequence;
 use crate::bus::{self, Bus};
@@ -110,16 +109,8 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
     if opts.method == b2b_pipeline::B2bMethod::Rgbd {
         return compute_rgbd(store, [&ids[0], &ids[1]], [&o1, &o2], opts);
     }
-    // The board centre from the corner layout the agents reported.
-    let pts = &o1
-        .observations
-        .first()
-        .context("robot 1 has no usable capture")?
-        .board
-        .target_points;
-    let centre = Point3::from(
-        pts.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / pts.len() as f64,
-    );
+    // The one board centre: the target's, as the agents report it.
+    let centre = store.target_centre(&[&ids[0], &ids[1]])?;
     Ok(b2b_pipeline::base_to_base_from_observations_with(
         [&o1, &o2],
         &centre,

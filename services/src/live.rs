@@ -489,6 +489,7 @@ impl LiveSource {
                 observed,
                 pixels: Some(frame.grey.clone()),
                 features: features.clone(),
+                target_centre: crate::plan::target_centre(&self.target.points),
             };
             let Some(a) = &auto else {
                 self.timings.decide_ms += ms(decide_started.elapsed());
@@ -605,6 +606,7 @@ impl LiveSource {
             observed: Err(self.reject(row, last_reason)),
             pixels: None,
             features: None,
+            target_centre: crate::plan::target_centre(&self.target.points),
         })
     }
 

@@ -186,6 +186,62 @@ impl Store {
             })
     }
 
+    /// The centre of the target (in its frame) the agents of `robots` report
+    /// with their observations: the same point for every capture, or an error
+    /// naming the first disagreement (the agents would be looking at different
+    /// targets). Captures from agents that do not report it fall back to the
+    /// mean of every distinct corner seen, with a warning.
+    pub fn target_centre(&self, robots: &[&str]) -> anyhow::Result<Point3<f64>> {
+        let mut reported: Option<(String, u64, [f64; 3])> = None;
+        let mut seen: Vec<[f64; 3]> = Vec::new();
+        let mut missing = 0usize;
+        for robot in robots {
+            let Some(caps) = self.captures.get(*robot) else {
+                continue;
+            };
+            for (index, cap) in caps {
+                let Some(o) = &cap.observation else {
+                    continue;
+                };
+                match (&reported, o.target_centre) {
+                    (_, None) => missing += 1,
+                    (None, Some(c)) => reported = Some((robot.to_string(), *index, c)),
+                    (Some((r0, i0, c0)), Some(c)) => {
+                        let d = (0..3).map(|k| (c[k] - c0[k]).powi(2)).sum::<f64>().sqrt();
+                        anyhow::ensure!(
+                            d < 1e-9,
+                            "robot '{robot}' capture {index} reports the target centre at \
+                             {c:?}, robot '{r0}' capture {i0} at {c0:?}: are the agents \
+                             configured with the same target?"
+                        );
+                    }
+                }
+                for p in &o.target_points {
+                    if !seen.contains(p) {
+                        seen.push(*p);
+                    }
+                }
+            }
+        }
+        if let Some((_, _, c)) = reported {
+            if missing > 0 {
+                tracing::warn!(
+                    "{missing} observation(s) without a target centre; using the reported one"
+                );
+            }
+            return Ok(Point3::from(c));
+        }
+        anyhow::ensure!(!seen.is_empty(), "no usable capture from {robots:?}");
+        tracing::warn!(
+            "the agents do not report the target centre; using the mean of the {} distinct corners seen",
+            seen.len()
+        );
+        let sum = seen.iter().fold(nalgebra::Vector3::zeros(), |a, p| {
+            a + nalgebra::Vector3::from(*p)
+        });
+        Ok(Point3::from(sum / seen.len() as f64))
+    }
+
     /// A robot's captures as the pipeline takes them.
     pub fn observations(&self, robot: &str) -> anyhow::Result<RobotObservations> {
         let caps = self
@@ -307,6 +363,7 @@ mod tests {
                 camera_from_target: Pose::IDENTITY,
                 residuals_px: vec![0.0; 4],
                 rms_px: 0.0,
+                target_centre: None,
             }),
             rejected: None,
             base_from_target: None,
@@ -324,6 +381,63 @@ mod tests {
             enough_data: false,
             message: String::new(),
         }
+    }
+
+    fn with_centre(index: u64, centre: Option<[f64; 3]>, corner: [f64; 3]) -> Capture {
+        let mut c = capture(index);
+        if let Some(o) = &mut c.observation {
+            o.target_centre = centre;
+            o.target_points = vec![corner; 4];
+        }
+        c
+    }
+
+    #[test]
+    fn one_target_centre_for_all_robots_or_a_named_disagreement() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        let c = Some([0.1, 0.05, 0.0]);
+        // Partial detections: the corners seen do not average to the centre,
+        // the reported centre is used.
+        for (robot, seq, cap) in [
+            ("robot1", 1, with_centre(0, c, [0.0; 3])),
+            ("robot2", 1, with_centre(0, c, [0.02, 0.0, 0.0])),
+        ] {
+            s.accept(Sample::Capture(Envelope::new(robot, seq, cap)))
+                .unwrap();
+        }
+        let got = s.target_centre(&["robot1", "robot2"]).unwrap();
+        assert_eq!(got, Point3::new(0.1, 0.05, 0.0));
+        s.accept(Sample::Capture(Envelope::new(
+            "robot2",
+            2,
+            with_centre(1, Some([0.2, 0.05, 0.0]), [0.0; 3]),
+        )))
+        .unwrap();
+        let err = s
+            .target_centre(&["robot1", "robot2"])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("robot2") && err.contains("capture 1"), "{err}");
+        // Agents that do not report it: the mean of the distinct corners seen.
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        s.accept(Sample::Capture(Envelope::new(
+            "robot1",
+            1,
+            with_centre(0, None, [0.0; 3]),
+        )))
+        .unwrap();
+        s.accept(Sample::Capture(Envelope::new(
+            "robot1",
+            2,
+            with_centre(1, None, [0.04, 0.0, 0.0]),
+        )))
+        .unwrap();
+        assert_eq!(
+            s.target_centre(&["robot1"]).unwrap(),
+            Point3::new(0.02, 0.0, 0.0)
+        );
     }
 
     #[test]

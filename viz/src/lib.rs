@@ -1052,6 +1052,7 @@ mod tests {
             camera_from_target: Pose::from_isometry(&camera_from_target),
             residuals_px: vec![0.0; 12],
             rms_px: 0.0,
+            target_centre: None,
         };
         let back = reproject(&obs, &cam).unwrap();
         for (a, b) in back.iter().zip(&pixels) {

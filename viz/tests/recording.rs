@@ -44,6 +44,7 @@ fn capture(index: u64, rejected: bool) -> Capture {
         camera_from_target: Pose::from_isometry(&camera_from_target),
         residuals_px: vec![0.3; 6],
         rms_px: 0.3 + index as f64 * 0.01,
+        target_centre: None,
     };
     Capture {
         index,
