@@ -61,7 +61,10 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             .arg(&scene)
             .arg("--setup")
             .arg(&setup_file)
-            .args(["--min-good", "25", "--count", "30"])
+            // One good capture more than the 25 the result must use: the estimator
+            // may rightly leave one out (a frame taken while the arm still moved
+            // on a loaded machine), and that must not fail the run.
+            .args(["--min-good", "26", "--count", "30"])
             .arg("--zenoh")
             .arg(agent_cfg)
             .arg("--state-dir")
@@ -107,7 +110,11 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
     );
     for robot in ["robot1", "robot2"] {
         let used = result.captures.used.get(robot).copied().unwrap_or(0);
-        assert!(used >= 25, "{robot}: only {used} good captures");
+        assert!(
+            used >= 25,
+            "{robot}: only {used} good captures; rejected: {:?}",
+            result.captures.rejected
+        );
     }
     let (err, _) = common::truth_error(&dataset(), &result);
     let bound = 3.0 * result.predicted_touch_error_m.p95.max(2e-4);
