@@ -81,7 +81,7 @@ use nalgebra::{Matrix6, Point3};
 pub enum PipelineError {
     #[error(transparent)]
     Dataset(#[from] DatasetError),
-    #[error("robot {robot}: {source}")]
+    #[error("robot {robot}")]
     Calib { robot: String, source: CalibError },
     #[error(transparent)]
     Vision(#[from] VisionError),
@@ -140,6 +140,20 @@ pub enum PipelineError {
         turns: String,
         reason: String,
     },
+}
+
+/// An error and its causes on one line, "a: b: c", for a reason kept as text (a
+/// rejected capture's reason, a status message). Every message of this workspace
+/// leaves its source out, so each cause appears once.
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }
 
 fn calib(robot: &str) -> impl FnOnce(CalibError) -> PipelineError + '_ {
@@ -263,7 +277,7 @@ impl TargetSpec {
     pub fn from_dataset(ds: &Dataset) -> Result<Self, PipelineError> {
         let manifest = ds.root.join("dataset.json");
         let bad =
-            |e: VisionError| PipelineError::Invalid(format!("{}: target: {e}", manifest.display()));
+            |e: VisionError| PipelineError::Invalid(format!("{}: target: {}", manifest.display(), error_chain(&e)));
         let spec = match &ds.manifest.target {
             Target::Checkerboard {
                 inner_corners,
@@ -559,7 +573,7 @@ fn observe_capture_impl(
                     .target
                     .detect_impl(&img, &setup.camera, up_to_symmetry)
             })
-            .map_err(|e| reject(e.to_string()))?;
+            .map_err(|e| reject(error_chain(&e)))?;
     Ok(Observation {
         row: cap.row,
         image,
@@ -714,7 +728,7 @@ pub fn screen_observations(
 fn guess_camera(width: u32, height: u32) -> Result<CameraModel, PipelineError> {
     let (w, h) = (f64::from(width), f64::from(height));
     CameraModel::new(width, height, [w, w, (w - 1.0) / 2.0, (h - 1.0) / 2.0], &[])
-        .map_err(|e| PipelineError::Invalid(format!("{width}x{height} image: {e}")))
+        .map_err(|e| PipelineError::Invalid(format!("{width}x{height} image: {}", error_chain(&e))))
 }
 
 /// The most views the initial intrinsics fit takes (spread over the captures in
@@ -806,7 +820,7 @@ fn observe_uncalibrated(
         let img = match b2b_vision::load_gray(&path) {
             Ok(img) => img,
             Err(e) => {
-                reject(e.to_string());
+                reject(error_chain(&e));
                 continue;
             }
         };
@@ -831,7 +845,7 @@ fn observe_uncalibrated(
         }
         match target.detect_corners(&img, &g) {
             Ok(det) => found.push((cap, redetect.then_some(img), det)),
-            Err(e) => reject(e.to_string()),
+            Err(e) => reject(error_chain(&e)),
         }
     }
     let Some(guess) = guess else {
@@ -871,7 +885,7 @@ fn observe_uncalibrated(
         terms,
         Some(&guess),
     )
-    .map_err(|e| estimation(e.to_string()))?;
+    .map_err(|e| estimation(error_chain(&e)))?;
     let camera = fit.camera.clone();
     let estimated = EstimatedIntrinsics {
         terms,
@@ -912,12 +926,13 @@ fn observe_uncalibrated(
                 residuals_px: pose.residuals_px,
             }),
             Err(e) => {
-                tracing::warn!(robot, row = cap.row, "capture rejected: {e}");
+                let reason = error_chain(&e);
+                tracing::warn!(robot, row = cap.row, "capture rejected: {reason}");
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
                     image,
                     row: Some(cap.row),
-                    reason: e.to_string(),
+                    reason,
                 });
             }
         }
@@ -1560,7 +1575,7 @@ pub fn verify(
 ) -> Result<(VerifyReport, TouchMetrics), PipelineError> {
     result
         .validate()
-        .map_err(|e| PipelineError::Invalid(format!("result: {e}")))?;
+        .map_err(|e| PipelineError::Invalid(format!("result: {}", error_chain(&e))))?;
     let base1_from_base2 = result
         .base1_from_base2
         .to_isometry("T_base1_base2")
@@ -1589,4 +1604,50 @@ pub fn verify(
 /// Loads a dataset, naming the folder in the error.
 pub fn load_dataset(dir: &Path) -> Result<Dataset, PipelineError> {
     Ok(Dataset::load(dir)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The review's example: "too few captures: 0, need at least 3" was printed twice,
+    /// once in the message and once as its source.
+    #[test]
+    fn too_few_captures_prints_its_cause_once() {
+        let e = PipelineError::Calib {
+            robot: "robot1".into(),
+            source: CalibError::TooFewCaptures { got: 0, need: 3 },
+        };
+        let chain = error_chain(&e);
+        assert_eq!(chain, "robot robot1: too few captures: 0, need at least 3");
+        assert_eq!(chain.matches("too few captures").count(), 1, "{chain}");
+    }
+
+    /// Every variant that wraps an error: its message leaves the source out, and the
+    /// chain names the cause once.
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "missing for the test");
+        let wrapped = [
+            PipelineError::Calib {
+                robot: "robot2".into(),
+                source: CalibError::NonFinite("base_from_flange[3]".into()),
+            },
+            PipelineError::Vision(VisionError::Io {
+                path: "/d/robot1/images/000.png".into(),
+                source: io,
+            }),
+        ];
+        for e in wrapped {
+            let mut causes = Vec::new();
+            let mut next = std::error::Error::source(&e);
+            while let Some(c) = next {
+                causes.push(c.to_string());
+                next = c.source();
+            }
+            let cause = causes.last().expect("a wrapped error has a cause");
+            let chain = error_chain(&e);
+            assert_eq!(chain.matches(cause.as_str()).count(), 1, "{chain}");
+        }
+    }
 }

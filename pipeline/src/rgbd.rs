@@ -627,7 +627,7 @@ pub fn load_views(
         let loaded = capture_view(ds, robot, &camera, unit, cap, options);
         match loaded {
             Ok(view) => views.push(view),
-            Err(e) => rejected.push(reject(e.to_string())),
+            Err(e) => rejected.push(reject(crate::error_chain(&e))),
         }
     }
     Ok((views, rejected))
@@ -738,7 +738,7 @@ pub fn rgbd_from_views(
                     inlier_centres.push((pairs.len(), c));
                     flanges.push((a.base_from_flange, b.base_from_flange));
                 }
-                Err(e) => pe.reason = Some(e.to_string()),
+                Err(e) => pe.reason = Some(crate::error_chain(&e)),
             }
             tracing::debug!(
                 rows = ?pe.rows,
