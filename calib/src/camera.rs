@@ -38,18 +38,13 @@ impl CameraModel {
         dist: &[f64],
     ) -> Result<Self, CalibError> {
         if dist.len() > 8 {
-            return Err(CalibError::Inconsistent(format!(
-                "{} distortion coefficients given; only k1 k2 p1 p2 [k3 [k4 k5 k6]] are supported",
-                dist.len()
-            )));
+            return Err(CalibError::DistortionTerms { count: dist.len() });
         }
         if [fx, fy, cx, cy].iter().chain(dist).any(|v| !v.is_finite()) {
             return Err(CalibError::NonFinite("camera intrinsics".into()));
         }
         if fx <= 0.0 || fy <= 0.0 {
-            return Err(CalibError::Inconsistent(format!(
-                "focal lengths must be positive, got fx={fx} fy={fy}"
-            )));
+            return Err(CalibError::NonPositiveFocalLength { fx, fy });
         }
         let mut d = [0.0; 8];
         d[..dist.len()].copy_from_slice(dist);

@@ -12,7 +12,7 @@
 //! These are exactly the `A` matrices of `A X = X B` the pair-based solvers use (the
 //! camera motions `B` are conjugate to them, so they have the same angles). In order:
 //!
-//! 1. lengths agree and every number is finite ([`CalibError::Inconsistent`],
+//! 1. lengths agree and every number is finite ([`CalibError::MismatchedLengths`],
 //!    [`CalibError::NonFinite`]);
 //! 2. at least [`MotionThresholds::min_captures`] captures ([`CalibError::TooFewCaptures`]);
 //! 3. the largest relative rotation is at least
@@ -113,11 +113,12 @@ pub fn check_same_length(
     camera_from_target: &[Iso3],
 ) -> Result<(), CalibError> {
     if base_from_flange.len() != camera_from_target.len() {
-        return Err(CalibError::Inconsistent(format!(
-            "{} flange poses (base_from_flange) but {} board poses (camera_from_target)",
-            base_from_flange.len(),
-            camera_from_target.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: base_from_flange.len(),
+            what_a: "flange poses (base_from_flange)",
+            len_b: camera_from_target.len(),
+            what_b: "board poses (camera_from_target)",
+        });
     }
     Ok(())
 }

@@ -5,9 +5,75 @@ pub enum CalibError {
     /// Fewer captures (or points) than the method needs.
     #[error("too few captures: {got}, need at least {need}")]
     TooFewCaptures { got: usize, need: usize },
-    /// Inputs that do not belong together (different lengths, ...).
-    #[error("inconsistent input: {0}")]
-    Inconsistent(String),
+    /// Two inputs that need one entry each per capture (or point) differ in length.
+    #[error("inconsistent input: {len_a} {what_a} but {len_b} {what_b}")]
+    MismatchedLengths {
+        len_a: usize,
+        what_a: &'static str,
+        len_b: usize,
+        what_b: &'static str,
+    },
+    /// A capture whose corner pixels and target points are not paired one to one.
+    #[error(
+        "inconsistent input: capture {capture}: {pixels} pixels but {target_points} target points"
+    )]
+    CornerCountMismatch {
+        capture: usize,
+        pixels: usize,
+        target_points: usize,
+    },
+    /// A 4x4 matrix whose last row is not `0 0 0 1`.
+    #[error(
+        "last row of a homogeneous matrix must be 0 0 0 1, found {} {} {} {}",
+        last_row[0], last_row[1], last_row[2], last_row[3]
+    )]
+    NotHomogeneous { last_row: [f64; 4] },
+    /// A rotation block that is not orthonormal.
+    #[error("rotation matrix is not orthonormal (|R^T R - I| = {deviation:.3e})")]
+    NotOrthonormal { deviation: f64 },
+    /// A rotation block with determinant -1.
+    #[error("rotation matrix has determinant -1 (a reflection)")]
+    Reflection,
+    /// A weight that is negative or not finite.
+    #[error("weight {index} is {value}: weights must be finite and >= 0")]
+    BadWeight { index: usize, value: f64 },
+    /// Weights that are all zero.
+    #[error("weights sum to zero")]
+    ZeroWeightSum,
+    /// More distortion coefficients than the camera model has.
+    #[error(
+        "{count} distortion coefficients given; only k1 k2 p1 p2 [k3 [k4 k5 k6]] are supported"
+    )]
+    DistortionTerms { count: usize },
+    /// A focal length that is zero or negative.
+    #[error("focal lengths must be positive, got fx={fx} fy={fy}")]
+    NonPositiveFocalLength { fx: f64, fy: f64 },
+    /// A method name that is not one of the methods of its kind.
+    #[error("unknown {kind} method '{name}': expected one of {expected}")]
+    UnknownMethod {
+        /// `hand-eye` or `robot-world`.
+        kind: &'static str,
+        name: String,
+        /// The accepted names, comma-separated.
+        expected: String,
+    },
+    /// A closed form's linear system does not determine its solution.
+    #[error(
+        "the {what} least-squares system is rank deficient: the motions do not determine the solution"
+    )]
+    RankDeficient { what: String },
+    /// A closed form's linear solution whose rotation block is singular.
+    #[error("the {what} linear solution has a singular rotation block (det = {det:.3e})")]
+    SingularRotationBlock { what: String, det: f64 },
+    /// A closed form whose decomposition broke down on these motions.
+    #[error("{method}: {reason}")]
+    SolverBreakdown {
+        method: &'static str,
+        reason: &'static str,
+    },
+    /// A synthetic test problem that could not be built with this configuration.
+    #[error("synthetic problem: {reason}")]
+    Synthesis { reason: &'static str },
     /// The relative rotations all turn about (nearly) one axis: the hand-eye
     /// translation along that axis cannot be observed.
     #[error(
@@ -107,4 +173,58 @@ pub enum CalibError {
     /// A target symmetry that is not a group of labellings of the target's points.
     #[error("invalid target symmetry, element {element}: {reason}")]
     InvalidSymmetry { element: usize, reason: String },
+}
+
+/// Why the solver stopped, in words an operator can act on (the solver's own
+/// reasons, such as `User("residuals")`, name its internals).
+pub(crate) fn solver_stopped(reason: &levenberg_marquardt::TerminationReason) -> String {
+    use levenberg_marquardt::TerminationReason as T;
+    match reason {
+        T::User(_) => "the reprojection model could not be evaluated at a step of the solver: \
+                       a board corner fell behind its camera, or the captures do not determine \
+                       every unknown; check that the flange poses and board poses belong \
+                       together and that the captures view the board from varied poses"
+            .to_owned(),
+        T::Numerical(what) => format!(
+            "a number became NaN or infinite in the solver ({what}): the captures hold extreme \
+             values or the starting estimate is far off"
+        ),
+        T::NoImprovementPossible(what) => format!(
+            "the solver could not improve the fit any further ({what} at machine precision) \
+             before it converged"
+        ),
+        T::NoParameters => "there are no unknowns to fit".to_owned(),
+        T::NoResiduals => "there are no corner residuals to fit (no corners left)".to_owned(),
+        T::WrongDimensions(what) => {
+            format!("internal error: the {what} has the wrong shape for the solver")
+        }
+        other => format!("the solver stopped without converging ({other:?})"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use levenberg_marquardt::TerminationReason;
+
+    /// Operators saw "optimisation failed: User(\"residuals\")".
+    #[test]
+    fn solver_failures_are_told_in_words() {
+        for reason in [
+            TerminationReason::User("residuals"),
+            TerminationReason::User("jacobian"),
+            TerminationReason::Numerical("jacobian"),
+            TerminationReason::NoImprovementPossible("ftol"),
+            TerminationReason::NoResiduals,
+        ] {
+            let e = CalibError::Optimisation(solver_stopped(&reason));
+            let text = e.to_string();
+            assert!(text.starts_with("optimisation failed: "), "{text}");
+            assert!(
+                !text.contains("User(") && !text.contains("Numerical("),
+                "{text}"
+            );
+            assert!(text.len() > 50, "{text}");
+        }
+    }
 }

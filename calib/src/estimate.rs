@@ -104,10 +104,12 @@ pub fn seed_hand_eye(
 ) -> Result<Seed, CalibError> {
     let n = robot.captures.len();
     if robot.camera_from_target.len() != n {
-        return Err(CalibError::Inconsistent(format!(
-            "{n} captures but {} board poses",
-            robot.camera_from_target.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: n,
+            what_a: "captures",
+            len_b: robot.camera_from_target.len(),
+            what_b: "board poses",
+        });
     }
     let centre = target_centre(robot.captures);
     let mut keep = vec![true; n];

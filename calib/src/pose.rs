@@ -55,10 +55,9 @@ pub fn from_matrix4(m: &Matrix4<f64>, tol: f64) -> Result<Iso3, CalibError> {
     }
     let last = m.row(3);
     if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > tol {
-        return Err(CalibError::Inconsistent(format!(
-            "last row of a homogeneous matrix must be 0 0 0 1, found {} {} {} {}",
-            last[0], last[1], last[2], last[3]
-        )));
+        return Err(CalibError::NotHomogeneous {
+            last_row: [last[0], last[1], last[2], last[3]],
+        });
     }
     let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into();
     rotation_from_matrix(&r, tol)
@@ -69,14 +68,10 @@ pub fn from_matrix4(m: &Matrix4<f64>, tol: f64) -> Result<Iso3, CalibError> {
 pub fn rotation_from_matrix(r: &Matrix3<f64>, tol: f64) -> Result<UnitQuaternion<f64>, CalibError> {
     let ortho = (r.transpose() * r - Matrix3::identity()).norm();
     if ortho > tol {
-        return Err(CalibError::Inconsistent(format!(
-            "rotation matrix is not orthonormal (|R^T R - I| = {ortho:.3e})"
-        )));
+        return Err(CalibError::NotOrthonormal { deviation: ortho });
     }
     if r.determinant() < 0.0 {
-        return Err(CalibError::Inconsistent(
-            "rotation matrix has determinant -1 (a reflection)".into(),
-        ));
+        return Err(CalibError::Reflection);
     }
     Ok(nearest_rotation(r))
 }
@@ -167,17 +162,18 @@ pub fn average_rotations(
     if let Some(w) = weights
         && w.len() != rotations.len()
     {
-        return Err(CalibError::Inconsistent(format!(
-            "{} rotations but {} weights",
-            rotations.len(),
-            w.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: rotations.len(),
+            what_a: "rotations",
+            len_b: w.len(),
+            what_b: "weights",
+        });
     }
     let mut m = Matrix4::<f64>::zeros();
     for (i, q) in rotations.iter().enumerate() {
         let w = weights.map_or(1.0, |w| w[i]);
         if !w.is_finite() || w < 0.0 {
-            return Err(CalibError::Inconsistent(format!("weight {i} is {w}")));
+            return Err(CalibError::BadWeight { index: i, value: w });
         }
         let v = q.quaternion().coords;
         m += w * v * v.transpose();

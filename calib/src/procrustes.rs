@@ -27,10 +27,12 @@ pub fn fit_weighted(
 ) -> Result<Iso3, CalibError> {
     let n = points_in_a.len();
     if n != points_in_b.len() {
-        return Err(CalibError::Inconsistent(format!(
-            "{n} points in a but {} in b",
-            points_in_b.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: n,
+            what_a: "points in a",
+            len_b: points_in_b.len(),
+            what_b: "in b",
+        });
     }
     if n < 3 {
         return Err(CalibError::TooFewCaptures { got: n, need: 3 });
@@ -45,7 +47,7 @@ pub fn fit_weighted(
     let w = |i: usize| weights.map_or(1.0, |w| w[i]);
     let wsum: f64 = (0..n).map(w).sum();
     if wsum <= 0.0 {
-        return Err(CalibError::Inconsistent("weights sum to zero".into()));
+        return Err(CalibError::ZeroWeightSum);
     }
     let ca: Vector3<f64> = (0..n)
         .map(|i| points_in_a[i].coords * w(i))
@@ -112,10 +114,12 @@ pub fn ransac_rigid(
 ) -> Result<RansacFit, CalibError> {
     let n = points_in_a.len();
     if n != points_in_b.len() {
-        return Err(CalibError::Inconsistent(format!(
-            "{n} points in a but {} in b",
-            points_in_b.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: n,
+            what_a: "points in a",
+            len_b: points_in_b.len(),
+            what_b: "in b",
+        });
     }
     if n < 3.max(options.min_inliers) {
         return Err(CalibError::TooFewCaptures {

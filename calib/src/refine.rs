@@ -1155,9 +1155,8 @@ fn minimise(engine: Engine) -> Result<Engine, CalibError> {
             levenberg_marquardt::TerminationReason::LostPatience
         )
     {
-        return Err(CalibError::Optimisation(format!(
-            "{:?}",
-            report.termination
+        return Err(CalibError::Optimisation(crate::error::solver_stopped(
+            &report.termination,
         )));
     }
     if engine.params.iter().any(|v| !v.is_finite()) {
@@ -1188,11 +1187,11 @@ pub(crate) fn solve(
     let n_corners: usize = captures.iter().map(|c| c.capture.pixels.len()).sum();
     for (i, c) in captures.iter().enumerate() {
         if c.capture.pixels.len() != c.capture.target_points.len() {
-            return Err(CalibError::Inconsistent(format!(
-                "capture {i}: {} pixels but {} target points",
-                c.capture.pixels.len(),
-                c.capture.target_points.len()
-            )));
+            return Err(CalibError::CornerCountMismatch {
+                capture: i,
+                pixels: c.capture.pixels.len(),
+                target_points: c.capture.target_points.len(),
+            });
         }
         if c.capture
             .pixels
@@ -1209,11 +1208,12 @@ pub(crate) fn solve(
     if let NoiseModel::PerCapture(covs) = &options.noise
         && covs.len() != captures.len()
     {
-        return Err(CalibError::Inconsistent(format!(
-            "{} capture covariances for {} captures",
-            covs.len(),
-            captures.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: covs.len(),
+            what_a: "capture covariances",
+            len_b: captures.len(),
+            what_b: "captures",
+        });
     }
     let mut engine = Engine {
         reference_poses: poses,

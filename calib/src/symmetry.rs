@@ -342,10 +342,12 @@ pub fn resolve_labelling(
 ) -> Result<LabellingResolution, CalibError> {
     let n = base_from_flange.len();
     if camera_from_target.len() != n {
-        return Err(CalibError::Inconsistent(format!(
-            "{n} flange poses but {} board poses",
-            camera_from_target.len()
-        )));
+        return Err(CalibError::MismatchedLengths {
+            len_a: n,
+            what_a: "flange poses",
+            len_b: camera_from_target.len(),
+            what_b: "board poses",
+        });
     }
     for (i, (b, c)) in base_from_flange.iter().zip(camera_from_target).enumerate() {
         let finite = |m: &Iso3| {
@@ -798,7 +800,7 @@ mod tests {
             &LabellingOptions::default(),
         )
         .unwrap_err();
-        assert!(matches!(err, CalibError::Inconsistent(_)), "{err}");
+        assert!(matches!(err, CalibError::MismatchedLengths { .. }), "{err}");
         let nan = Iso3::translation(f64::NAN, 0.0, 0.0);
         let err = resolve_labelling(
             &[Iso3::identity(), nan],

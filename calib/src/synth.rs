@@ -145,9 +145,9 @@ pub fn make_robot(
     while out.observations.len() < cfg.captures {
         attempts += 1;
         if attempts > cfg.captures * 200 {
-            return Err(CalibError::Inconsistent(
-                "could not place viewpoints with the board in view".into(),
-            ));
+            return Err(CalibError::Synthesis {
+                reason: "could not place viewpoints with the board in view",
+            });
         }
         // The board's printed side faces -z of the target frame (z points into the board).
         let tilt = rng.random_range(0.0..cfg.max_tilt);
@@ -247,7 +247,9 @@ pub fn fit_pose(
             let p = pose * points[*k];
             let (proj, jp) = camera
                 .project_with_jacobian(&p)
-                .ok_or_else(|| CalibError::Inconsistent("point behind camera".into()))?;
+                .ok_or(CalibError::Synthesis {
+                    reason: "point behind camera",
+                })?;
             let r = proj - uv;
             // d p / d(left perturbation [w, v]) = [-[p]x, I]
             let mut dp = nalgebra::Matrix3x6::<f64>::zeros();

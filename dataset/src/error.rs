@@ -91,7 +91,7 @@ pub enum DatasetError {
     MissingFile { file: PathBuf, what: &'static str },
 
     /// A file exists but could not be read or written.
-    #[error("{}: {source}", file.display())]
+    #[error("{}", file.display())]
     Io {
         file: PathBuf,
         #[source]
@@ -102,7 +102,7 @@ pub enum DatasetError {
     /// `field` is the path of the offending value (e.g. `robots[0].camera.width`), empty
     /// for a syntax error.
     #[error(
-        "{}: line {line}, column {column}{}: invalid JSON: {source}",
+        "{}: line {line}, column {column}{}: invalid JSON",
         file.display(),
         if field.is_empty() { String::new() } else { format!(", field `{field}`") }
     )]
@@ -308,6 +308,39 @@ mod tests {
         assert_eq!(at.to_string(), "/d/dataset.json, field `target.square_m`");
         let at = Location::file("/d/a.csv").at_line(1);
         assert_eq!(at.to_string(), "/d/a.csv: line 1");
+    }
+
+    /// The message leaves its source out: the source's text is not in the top message
+    /// and appears exactly once in the chain "a: b: c" that binaries print.
+    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
+        let cause = e
+            .source()
+            .expect("the error keeps its cause as source")
+            .to_string();
+        assert!(
+            !e.to_string().contains(&cause),
+            "{e} repeats its source {cause}"
+        );
+        let mut chain = e.to_string();
+        let mut next = e.source();
+        while let Some(c) = next {
+            chain = format!("{chain}: {c}");
+            next = c.source();
+        }
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::PermissionDenied, "denied by test");
+        assert_cause_once(&DatasetError::io("/d/robot1/captures.csv", io));
+        let json = serde_json::from_str::<serde_json::Value>("{ nope").unwrap_err();
+        let e = DatasetError::json("/d/dataset.json", json);
+        assert_cause_once(&e);
+        assert!(
+            e.to_string().starts_with("/d/dataset.json: line 1, column"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -47,7 +47,7 @@ pub enum FramesError {
         reason: String,
     },
     /// The caller's fill closure failed; nothing was sent.
-    #[error("{service}: the frame could not be written: {source}")]
+    #[error("{service}: the frame could not be written")]
     Fill {
         service: String,
         source: Box<dyn std::error::Error + Send + Sync>,
@@ -58,4 +58,37 @@ pub enum FramesError {
     /// The RealSense camera (feature `realsense`).
     #[error("RealSense: {0}")]
     RealSense(String),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The message leaves its source out: the source's text is not in the top message
+    /// and appears exactly once in the chain "a: b: c" that binaries print.
+    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
+        let cause = e
+            .source()
+            .expect("the error keeps its cause as source")
+            .to_string();
+        assert!(
+            !e.to_string().contains(&cause),
+            "{e} repeats its source {cause}"
+        );
+        let mut chain = e.to_string();
+        let mut next = e.source();
+        while let Some(c) = next {
+            chain = format!("{chain}: {c}");
+            next = c.source();
+        }
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        assert_cause_once(&FramesError::Fill {
+            service: "b2b/camera/robot1/colour".into(),
+            source: "the renderer ran out of memory".into(),
+        });
+    }
 }

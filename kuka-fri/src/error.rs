@@ -27,7 +27,7 @@ pub enum FriError {
         max: usize,
     },
     /// The bytes are not valid protobuf for the expected message (truncated or malformed).
-    #[error("{message}: malformed or truncated protobuf: {source}")]
+    #[error("{message}: malformed or truncated protobuf")]
     Decode {
         /// Which message was being decoded.
         message: &'static str,
@@ -156,9 +156,56 @@ pub enum FriError {
     #[error("the FRI driver thread has stopped")]
     DriverStopped,
     /// Socket error.
-    #[error("UDP socket: {0}")]
+    #[error("UDP socket")]
     Io(#[from] std::io::Error),
+}
+
+/// The error and its causes on one line, "a: b: c": each message leaves its source
+/// out, so every cause appears once.
+pub(crate) fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }
 
 /// Result alias of this crate.
 pub type Result<T, E = FriError> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The message leaves its source out: the source's text is not in the top message
+    /// and appears exactly once in the chain "a: b: c" that binaries print.
+    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
+        let cause = e
+            .source()
+            .expect("the error keeps its cause as source")
+            .to_string();
+        assert!(
+            !e.to_string().contains(&cause),
+            "{e} repeats its source {cause}"
+        );
+        let mut chain = e.to_string();
+        let mut next = e.source();
+        while let Some(c) = next {
+            chain = format!("{chain}: {c}");
+            next = c.source();
+        }
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let e = crate::codec::decode_monitoring(&[0x0a, 0xff, 0xff]).unwrap_err();
+        assert!(matches!(e, FriError::Decode { .. }), "{e}");
+        assert_cause_once(&e);
+        let io = std::io::Error::new(std::io::ErrorKind::AddrInUse, "address in use by test");
+        assert_cause_once(&FriError::from(io));
+    }
+}

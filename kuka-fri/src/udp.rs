@@ -305,8 +305,9 @@ fn drive(shared: &Shared, socket: &UdpSocket, controller: Option<SocketAddr>, po
                         }
                     }
                     Err(e) => {
-                        tracing::debug!(%e, %from, "rejected FRI datagram");
-                        inner.last_error = Some(e.to_string());
+                        let reason = crate::error::chain(&e);
+                        tracing::debug!(%reason, %from, "rejected FRI datagram");
+                        inner.last_error = Some(reason);
                     }
                 }
                 drain_events(&mut inner);

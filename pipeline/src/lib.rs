@@ -81,7 +81,7 @@ use nalgebra::{Matrix6, Point3};
 pub enum PipelineError {
     #[error(transparent)]
     Dataset(#[from] DatasetError),
-    #[error("robot {robot}: {source}")]
+    #[error("robot {robot}")]
     Calib { robot: String, source: CalibError },
     #[error(transparent)]
     Vision(#[from] VisionError),
@@ -107,8 +107,124 @@ pub enum PipelineError {
     /// A robot without a `camera` block whose captures do not allow estimating one.
     #[error("robot '{robot}': cannot estimate the camera intrinsics from its captures: {reason}")]
     IntrinsicsEstimation { robot: String, reason: String },
-    #[error("{0}")]
-    Invalid(String),
+    /// A robot id that the dataset's manifest does not list.
+    #[error("robot '{robot}' is not in {}", manifest.display())]
+    UnknownRobot { robot: String, manifest: PathBuf },
+    /// The manifest's target cannot be detected as described (sizes, dictionary, the
+    /// multimarker file).
+    #[error("{}: target", manifest.display())]
+    InvalidTarget {
+        manifest: PathBuf,
+        #[source]
+        source: VisionError,
+    },
+    /// No camera could be guessed from an image's size to start the intrinsics fit.
+    #[error("{width}x{height} image: no initial camera for the intrinsics fit")]
+    CameraGuess {
+        width: u32,
+        height: u32,
+        #[source]
+        source: CalibError,
+    },
+    /// A base-to-base method whose target kind the dataset does not have.
+    #[error(
+        "{}: method {method} needs {needs}; this dataset's target is {found}: use --method {instead}",
+        manifest.display()
+    )]
+    MethodTargetMismatch {
+        manifest: PathBuf,
+        method: &'static str,
+        /// What the method needs, e.g. `a multimarker target`.
+        needs: &'static str,
+        /// What the dataset has, e.g. `'charuco'`.
+        found: String,
+        /// The method that fits the dataset's target.
+        instead: &'static str,
+    },
+    /// Base-to-base on a dataset with other than two robots.
+    #[error(
+        "{}: base-to-base needs exactly two robots, the manifest lists {robots}",
+        manifest.display()
+    )]
+    NotTwoRobots { manifest: PathBuf, robots: usize },
+    /// A result file (or message) that does not validate.
+    #[error("result")]
+    InvalidResult {
+        #[source]
+        source: b2b_protocol::ProtocolError,
+    },
+    /// RGB-D: a robot whose manifest entry has no depth unit.
+    #[error(
+        "{}: robot '{robot}' has no depth_unit_m: method rgbd needs depth images",
+        manifest.display()
+    )]
+    NoDepthUnit { robot: String, manifest: PathBuf },
+    /// RGB-D: a capture without both its colour and its depth image.
+    #[error("rgbd needs both a colour and a depth image")]
+    NoDepthImage,
+    /// RGB-D: a depth image of another size than the colour camera's; `depth_file`
+    /// is the depth image when it came from a file.
+    #[error(
+        "{}depth image is {depth_width}x{depth_height}, the colour camera \
+         {colour_width}x{colour_height} (depth must be aligned to colour)",
+        .depth_file.as_ref().map(|f| format!("{}: ", f.display())).unwrap_or_default()
+    )]
+    DepthNotAligned {
+        depth_file: Option<PathBuf>,
+        depth_width: u32,
+        depth_height: u32,
+        colour_width: u32,
+        colour_height: u32,
+    },
+    /// RGB-D: a feature set whose keypoints and 3-D points are not paired one to one.
+    #[error("features of row {row}: {keypoints} keypoints but {points} points")]
+    FeatureCountMismatch {
+        row: usize,
+        keypoints: usize,
+        points: usize,
+    },
+    /// RGB-D: an image pair with too few matches that have depth at both ends.
+    #[error("{matches} matches with valid depth at both ends, need at least {need}")]
+    TooFewDepthMatches { matches: usize, need: usize },
+    /// RGB-D: RANSAC found no rigid motion that enough matches agree with.
+    #[error(
+        "RANSAC: best consensus {best} of {total} matches within {threshold_mm:.1} mm, need {need}"
+    )]
+    NoRansacConsensus {
+        best: usize,
+        total: usize,
+        threshold_mm: f64,
+        need: usize,
+    },
+    /// RGB-D: fewer RANSAC inliers than needed after the final fit.
+    #[error("{inliers} RANSAC inliers, need at least {need}")]
+    TooFewRansacInliers { inliers: usize, need: usize },
+    /// RGB-D: the pair estimates and their view labels differ in number.
+    #[error("rgbd: {estimates} pair estimates but {labels} view labels")]
+    PairLabelsMismatch { estimates: usize, labels: usize },
+    /// RGB-D: nothing to combine.
+    #[error("rgbd: no image pair gave an estimate")]
+    NoPairEstimate,
+    /// RGB-D: the screening left no pair.
+    #[error("rgbd: every pair was rejected as an outlier")]
+    AllPairsOutliers,
+    /// RGB-D: no image pair of the two robots had enough inliers; `reasons` says why
+    /// per pair ("rows 3/5: ...").
+    #[error(
+        "rgbd: no image pair has {min_inliers} inliers ({pairs} pairs tried, {views1} views of \
+         {robot1}, {views2} of {robot2}){}{}",
+        if reasons.is_empty() { "" } else { ": " },
+        reasons.join("; ")
+    )]
+    NoPairWithInliers {
+        min_inliers: usize,
+        pairs: usize,
+        robot1: String,
+        views1: usize,
+        robot2: String,
+        views2: usize,
+        reasons: Vec<String>,
+    },
     /// A symmetric target whose labelling the robot's motion could not decide for too
     /// many captures (see the crate docs, "Symmetric targets").
     #[error(
@@ -140,6 +256,34 @@ pub enum PipelineError {
         turns: String,
         reason: String,
     },
+}
+
+/// An error and its causes on one line, "a: b: c", for a reason kept as text (a
+/// rejected capture's reason, a status message). Every message of this workspace
+/// leaves its source out, so each cause appears once.
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
+}
+
+fn unknown_robot(ds: &Dataset, robot: &str) -> PipelineError {
+    PipelineError::UnknownRobot {
+        robot: robot.to_owned(),
+        manifest: ds.root.join("dataset.json"),
+    }
+}
+
+fn not_two_robots(ds: &Dataset) -> PipelineError {
+    PipelineError::NotTwoRobots {
+        manifest: ds.root.join("dataset.json"),
+        robots: ds.manifest.robots.len(),
+    }
 }
 
 fn calib(robot: &str) -> impl FnOnce(CalibError) -> PipelineError + '_ {
@@ -229,12 +373,9 @@ pub struct EstimatedIntrinsics {
 
 /// The `camera` block of a robot; `None` when the dataset leaves it out.
 fn camera_of(ds: &Dataset, robot: &str) -> Result<Option<CameraModel>, PipelineError> {
-    let m = ds.robot_manifest(robot).ok_or_else(|| {
-        PipelineError::Invalid(format!(
-            "robot '{robot}' is not in {}",
-            ds.root.join("dataset.json").display()
-        ))
-    })?;
+    let m = ds
+        .robot_manifest(robot)
+        .ok_or_else(|| unknown_robot(ds, robot))?;
     m.camera
         .as_ref()
         .map(|c| {
@@ -262,8 +403,10 @@ impl TargetSpec {
     /// The target of a dataset; a multimarker file is read from the dataset folder.
     pub fn from_dataset(ds: &Dataset) -> Result<Self, PipelineError> {
         let manifest = ds.root.join("dataset.json");
-        let bad =
-            |e: VisionError| PipelineError::Invalid(format!("{}: target: {e}", manifest.display()));
+        let bad = |source: VisionError| PipelineError::InvalidTarget {
+            manifest: manifest.clone(),
+            source,
+        };
         let spec = match &ds.manifest.target {
             Target::Checkerboard {
                 inner_corners,
@@ -559,7 +702,7 @@ fn observe_capture_impl(
                     .target
                     .detect_impl(&img, &setup.camera, up_to_symmetry)
             })
-            .map_err(|e| reject(e.to_string()))?;
+            .map_err(|e| reject(error_chain(&e)))?;
     Ok(Observation {
         row: cap.row,
         image,
@@ -590,9 +733,7 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
         return screen_observations(&obs, &captures.display().to_string()).map(|(o, _)| o);
     }
     let setup = RobotSetup::from_dataset(ds, robot)?;
-    let data = ds
-        .robot(robot)
-        .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+    let data = ds.robot(robot).ok_or_else(|| unknown_robot(ds, robot))?;
     check_image_sizes(ds, robot, &setup.camera)?;
     let mut observations = Vec::new();
     let mut rejected = Vec::new();
@@ -713,8 +854,13 @@ pub fn screen_observations(
 /// distortion.
 fn guess_camera(width: u32, height: u32) -> Result<CameraModel, PipelineError> {
     let (w, h) = (f64::from(width), f64::from(height));
-    CameraModel::new(width, height, [w, w, (w - 1.0) / 2.0, (h - 1.0) / 2.0], &[])
-        .map_err(|e| PipelineError::Invalid(format!("{width}x{height} image: {e}")))
+    CameraModel::new(width, height, [w, w, (w - 1.0) / 2.0, (h - 1.0) / 2.0], &[]).map_err(
+        |source| PipelineError::CameraGuess {
+            width,
+            height,
+            source,
+        },
+    )
 }
 
 /// The most views the initial intrinsics fit takes (spread over the captures in
@@ -771,9 +917,7 @@ fn observe_uncalibrated(
     target: TargetSpec,
     start: Instant,
 ) -> Result<RobotObservations, PipelineError> {
-    let data = ds
-        .robot(robot)
-        .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+    let data = ds.robot(robot).ok_or_else(|| unknown_robot(ds, robot))?;
     let estimation = |reason: String| PipelineError::IntrinsicsEstimation {
         robot: robot.to_owned(),
         reason,
@@ -806,7 +950,7 @@ fn observe_uncalibrated(
         let img = match b2b_vision::load_gray(&path) {
             Ok(img) => img,
             Err(e) => {
-                reject(e.to_string());
+                reject(error_chain(&e));
                 continue;
             }
         };
@@ -831,7 +975,7 @@ fn observe_uncalibrated(
         }
         match target.detect_corners(&img, &g) {
             Ok(det) => found.push((cap, redetect.then_some(img), det)),
-            Err(e) => reject(e.to_string()),
+            Err(e) => reject(error_chain(&e)),
         }
     }
     let Some(guess) = guess else {
@@ -871,7 +1015,7 @@ fn observe_uncalibrated(
         terms,
         Some(&guess),
     )
-    .map_err(|e| estimation(e.to_string()))?;
+    .map_err(|e| estimation(error_chain(&e)))?;
     let camera = fit.camera.clone();
     let estimated = EstimatedIntrinsics {
         terms,
@@ -912,12 +1056,13 @@ fn observe_uncalibrated(
                 residuals_px: pose.residuals_px,
             }),
             Err(e) => {
-                tracing::warn!(robot, row = cap.row, "capture rejected: {e}");
+                let reason = error_chain(&e);
+                tracing::warn!(robot, row = cap.row, "capture rejected: {reason}");
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
                     image,
                     row: Some(cap.row),
-                    reason: e.to_string(),
+                    reason,
                 });
             }
         }
@@ -1354,19 +1499,22 @@ pub fn base_to_base_run(
     match (method, target.is_board()) {
         (B2bMethod::Board, true) | (B2bMethod::Multimarker, false) => {}
         (B2bMethod::Board, false) => {
-            return Err(PipelineError::Invalid(format!(
-                "{}: method board needs a board target (checkerboard, charuco, aruco_grid); \
-                 this dataset's target is a multimarker set: use --method multimarker",
-                ds.root.join("dataset.json").display()
-            )));
+            return Err(PipelineError::MethodTargetMismatch {
+                manifest: ds.root.join("dataset.json"),
+                method: "board",
+                needs: "a board target (checkerboard, charuco, aruco_grid)",
+                found: "a multimarker set".into(),
+                instead: "multimarker",
+            });
         }
         (B2bMethod::Multimarker, true) => {
-            return Err(PipelineError::Invalid(format!(
-                "{}: method multimarker needs a multimarker target; this dataset's target \
-                 is '{}': use --method board",
-                ds.root.join("dataset.json").display(),
-                ds.manifest.target.kind()
-            )));
+            return Err(PipelineError::MethodTargetMismatch {
+                manifest: ds.root.join("dataset.json"),
+                method: "multimarker",
+                needs: "a multimarker target",
+                found: format!("'{}'", ds.manifest.target.kind()),
+                instead: "board",
+            });
         }
         (B2bMethod::Rgbd, _) => {
             for r in &ds.manifest.robots {
@@ -1386,11 +1534,7 @@ pub fn base_to_base_run(
         }
     }
     if ds.manifest.robots.len() != 2 {
-        return Err(PipelineError::Invalid(format!(
-            "{}: base-to-base needs exactly two robots, the manifest lists {}",
-            ds.root.join("dataset.json").display(),
-            ds.manifest.robots.len()
-        )));
+        return Err(not_two_robots(ds));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let obs1 = observe_robot(ds, &ids[0])?;
@@ -1560,11 +1704,11 @@ pub fn verify(
 ) -> Result<(VerifyReport, TouchMetrics), PipelineError> {
     result
         .validate()
-        .map_err(|e| PipelineError::Invalid(format!("result: {e}")))?;
+        .map_err(|source| PipelineError::InvalidResult { source })?;
     let base1_from_base2 = result
         .base1_from_base2
         .to_isometry("T_base1_base2")
-        .map_err(|e| PipelineError::Invalid(e.to_string()))?;
+        .map_err(|source| PipelineError::InvalidResult { source })?;
     let cov = Matrix6::from_fn(|i, j| result.covariance[i][j]);
     let pairs: Vec<_> = touches
         .iter()
@@ -1589,4 +1733,50 @@ pub fn verify(
 /// Loads a dataset, naming the folder in the error.
 pub fn load_dataset(dir: &Path) -> Result<Dataset, PipelineError> {
     Ok(Dataset::load(dir)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The review's example: "too few captures: 0, need at least 3" was printed twice,
+    /// once in the message and once as its source.
+    #[test]
+    fn too_few_captures_prints_its_cause_once() {
+        let e = PipelineError::Calib {
+            robot: "robot1".into(),
+            source: CalibError::TooFewCaptures { got: 0, need: 3 },
+        };
+        let chain = error_chain(&e);
+        assert_eq!(chain, "robot robot1: too few captures: 0, need at least 3");
+        assert_eq!(chain.matches("too few captures").count(), 1, "{chain}");
+    }
+
+    /// Every variant that wraps an error: its message leaves the source out, and the
+    /// chain names the cause once.
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "missing for the test");
+        let wrapped = [
+            PipelineError::Calib {
+                robot: "robot2".into(),
+                source: CalibError::NonFinite("base_from_flange[3]".into()),
+            },
+            PipelineError::Vision(VisionError::Io {
+                path: "/d/robot1/images/000.png".into(),
+                source: io,
+            }),
+        ];
+        for e in wrapped {
+            let mut causes = Vec::new();
+            let mut next = std::error::Error::source(&e);
+            while let Some(c) = next {
+                causes.push(c.to_string());
+                next = c.source();
+            }
+            let cause = causes.last().expect("a wrapped error has a cause");
+            let chain = error_chain(&e);
+            assert_eq!(chain.matches(cause.as_str()).count(), 1, "{chain}");
+        }
+    }
 }

@@ -149,11 +149,11 @@ impl RgbdView {
     ) -> Result<RgbdView, PipelineError> {
         let kind = FeatureKind::parse(&set.kind)?;
         if set.points_camera.len() != set.pixels.len() {
-            return Err(PipelineError::Invalid(format!(
-                "features of row {row}: {} keypoints but {} points",
-                set.pixels.len(),
-                set.points_camera.len()
-            )));
+            return Err(PipelineError::FeatureCountMismatch {
+                row,
+                keypoints: set.pixels.len(),
+                points: set.points_camera.len(),
+            });
         }
         let features = Features::from_parts(
             kind,
@@ -204,10 +204,13 @@ pub fn detect_and_lift(
     options: &RgbdOptions,
 ) -> Result<(Features, LiftedPoints), PipelineError> {
     if (depth.width, depth.height) != (camera.width, camera.height) {
-        return Err(PipelineError::Invalid(format!(
-            "depth image is {}x{}, the colour camera {}x{} (depth must be aligned to colour)",
-            depth.width, depth.height, camera.width, camera.height
-        )));
+        return Err(PipelineError::DepthNotAligned {
+            depth_file: None,
+            depth_width: depth.width,
+            depth_height: depth.height,
+            colour_width: camera.width,
+            colour_height: camera.height,
+        });
     }
     let features = detect_features(gray, &options.features)?;
     let points = lift_features(camera, &features, depth, unit_m, options);
@@ -338,20 +341,22 @@ pub fn fit_camera_pair(
 ) -> Result<CameraPairFit, PipelineError> {
     let need = options.min_inliers.max(3);
     if points1.len() < need {
-        return Err(PipelineError::Invalid(format!(
-            "{} matches with valid depth at both ends, need at least {need}",
-            points1.len()
-        )));
+        return Err(PipelineError::TooFewDepthMatches {
+            matches: points1.len(),
+            need,
+        });
     }
     let ransac = RansacOptions {
         min_inliers: need,
         ..options.ransac
     };
     let fit = ransac_rigid(points1, points2, &ransac).map_err(|e| match e {
-        CalibError::NoConsensus { best, total, need } => PipelineError::Invalid(format!(
-            "RANSAC: best consensus {best} of {total} matches within {:.1} mm, need {need}",
-            options.ransac.threshold * 1e3
-        )),
+        CalibError::NoConsensus { best, total, need } => PipelineError::NoRansacConsensus {
+            best,
+            total,
+            threshold_mm: options.ransac.threshold * 1e3,
+            need,
+        },
         other => PipelineError::Calib {
             robot: "camera pair".into(),
             source: other,
@@ -365,9 +370,7 @@ pub fn fit_camera_pair(
         .collect();
     let inliers = inlier_points1.len();
     if inliers < need {
-        return Err(PipelineError::Invalid(format!(
-            "{inliers} RANSAC inliers, need at least {need}"
-        )));
+        return Err(PipelineError::TooFewRansacInliers { inliers, need });
     }
     let c: Vector3<f64> = inlier_points1
         .iter()
@@ -422,15 +425,13 @@ pub fn combine_pairs_by_view(
 ) -> Result<Combined, PipelineError> {
     let n = estimates.len();
     if views.len() != n {
-        return Err(PipelineError::Invalid(format!(
-            "rgbd: {n} pair estimates but {} view labels",
-            views.len()
-        )));
+        return Err(PipelineError::PairLabelsMismatch {
+            estimates: n,
+            labels: views.len(),
+        });
     }
     if n == 0 {
-        return Err(PipelineError::Invalid(
-            "rgbd: no image pair gave an estimate".into(),
-        ));
+        return Err(PipelineError::NoPairEstimate);
     }
     let t: Vec<Vector3<f64>> = estimates.iter().map(|e| e.0.translation.vector).collect();
     let t_med = Vector3::from_fn(|i, _| median(&mut t.iter().map(|v| v[i]).collect::<Vec<_>>()));
@@ -476,9 +477,7 @@ pub fn combine_pairs_by_view(
         .collect();
     let kept: Vec<usize> = (0..n).filter(|i| verdicts[*i].is_ok()).collect();
     if kept.is_empty() {
-        return Err(PipelineError::Invalid(
-            "rgbd: every pair was rejected as an outlier".into(),
-        ));
+        return Err(PipelineError::AllPairsOutliers);
     }
     let w: Vec<f64> = kept.iter().map(|&i| estimates[i].1 as f64).collect();
     let wsum: f64 = w.iter().sum();
@@ -557,16 +556,26 @@ pub fn capture_view(
     options: &RgbdOptions,
 ) -> Result<RgbdView, PipelineError> {
     let (Some(ip), Some(dp)) = (ds.image_path(robot, cap), ds.depth_path(robot, cap)) else {
-        return Err(PipelineError::Invalid(
-            "rgbd needs both a colour and a depth image".into(),
-        ));
+        return Err(PipelineError::NoDepthImage);
     };
     let gray = b2b_vision::load_gray_sized(&ip, camera.width, camera.height)?;
     b2b_vision::check_image_file(&dp, camera.width, camera.height)?;
     let depth = load_depth(&dp)?;
     let (features, points) =
         detect_and_lift(camera, &gray, &depth, unit_m, options).map_err(|e| match e {
-            PipelineError::Invalid(m) => PipelineError::Invalid(format!("{}: {m}", dp.display())),
+            PipelineError::DepthNotAligned {
+                depth_file: None,
+                depth_width,
+                depth_height,
+                colour_width,
+                colour_height,
+            } => PipelineError::DepthNotAligned {
+                depth_file: Some(dp.clone()),
+                depth_width,
+                depth_height,
+                colour_width,
+                colour_height,
+            },
             other => other,
         })?;
     Ok(RgbdView {
@@ -591,15 +600,13 @@ pub fn load_views(
 ) -> Result<(Vec<RgbdView>, Vec<RejectedCapture>), PipelineError> {
     let data = ds
         .robot(robot)
-        .ok_or_else(|| PipelineError::Invalid(format!("robot '{robot}' is not in the dataset")))?;
+        .ok_or_else(|| crate::unknown_robot(ds, robot))?;
     let unit = ds
         .robot_manifest(robot)
         .and_then(|m| m.depth_unit_m)
-        .ok_or_else(|| {
-            PipelineError::Invalid(format!(
-                "{}: robot '{robot}' has no depth_unit_m: method rgbd needs depth images",
-                ds.root.join("dataset.json").display()
-            ))
+        .ok_or_else(|| PipelineError::NoDepthUnit {
+            robot: robot.to_owned(),
+            manifest: ds.root.join("dataset.json"),
         })?;
     let camera = RobotSetup::from_dataset(ds, robot)?.camera;
     crate::check_image_sizes(ds, robot, &camera)?;
@@ -616,7 +623,7 @@ pub fn load_views(
         let loaded = capture_view(ds, robot, &camera, unit, cap, options);
         match loaded {
             Ok(view) => views.push(view),
-            Err(e) => rejected.push(reject(e.to_string())),
+            Err(e) => rejected.push(reject(crate::error_chain(&e))),
         }
     }
     Ok((views, rejected))
@@ -635,11 +642,7 @@ pub fn rgbd_base_to_base_with_hand_eyes(
 ) -> Result<RgbdRun, PipelineError> {
     let start = Instant::now();
     if ds.manifest.robots.len() != 2 {
-        return Err(PipelineError::Invalid(format!(
-            "{}: base-to-base needs exactly two robots, the manifest lists {}",
-            ds.root.join("dataset.json").display(),
-            ds.manifest.robots.len()
-        )));
+        return Err(crate::not_two_robots(ds));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let (v1, rej1) = load_views(ds, &ids[0], options)?;
@@ -727,7 +730,7 @@ pub fn rgbd_from_views(
                     inlier_centres.push((pairs.len(), c));
                     flanges.push((a.base_from_flange, b.base_from_flange));
                 }
-                Err(e) => pe.reason = Some(e.to_string()),
+                Err(e) => pe.reason = Some(crate::error_chain(&e)),
             }
             tracing::debug!(
                 rows = ?pe.rows,
@@ -751,17 +754,15 @@ pub fn rgbd_from_views(
                 )
             })
             .collect();
-        return Err(PipelineError::Invalid(format!(
-            "rgbd: no image pair has {} inliers ({} pairs tried, {} views of {}, {} of {}){}{}",
-            options.min_inliers,
-            pairs.len(),
-            v1.len(),
-            ids[0],
-            v2.len(),
-            ids[1],
-            if reasons.is_empty() { "" } else { ": " },
-            reasons.join("; ")
-        )));
+        return Err(PipelineError::NoPairWithInliers {
+            min_inliers: options.min_inliers,
+            pairs: pairs.len(),
+            robot1: ids[0].to_owned(),
+            views1: v1.len(),
+            robot2: ids[1].to_owned(),
+            views2: v2.len(),
+            reasons,
+        });
     }
     let mut combined = combine_pairs_by_view(&estimates, &pair_views, options)?;
     if let Some([c1, c2]) = hand_eye_covariance {
@@ -872,11 +873,7 @@ pub fn rgbd_base_to_base(
 ) -> Result<RgbdRun, PipelineError> {
     let start = Instant::now();
     if ds.manifest.robots.len() != 2 {
-        return Err(PipelineError::Invalid(format!(
-            "{}: base-to-base needs exactly two robots, the manifest lists {}",
-            ds.root.join("dataset.json").display(),
-            ds.manifest.robots.len()
-        )));
+        return Err(crate::not_two_robots(ds));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let obs1 = observe_robot(ds, &ids[0])?;

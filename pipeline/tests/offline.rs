@@ -198,7 +198,7 @@ fn base_to_base_on_the_simulated_dataset_is_within_its_predicted_error() {
 fn a_one_robot_dataset_is_not_a_base_to_base_dataset() {
     let ds = Dataset::load(&shared_dataset("visp-franka-eye-in-hand")).unwrap();
     let err = base_to_base(&ds, B2bMethod::Board, &RefineOptions::default()).unwrap_err();
-    assert!(matches!(err, PipelineError::Invalid(_)), "{err}");
+    assert!(matches!(err, PipelineError::NotTwoRobots { .. }), "{err}");
     assert!(err.to_string().contains("dataset.json"), "{err}");
 }
 

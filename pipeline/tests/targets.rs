@@ -83,7 +83,10 @@ fn every_target_kind_calibrates_base_to_base_within_its_bound() {
 fn methods_must_match_the_target() {
     let board = Dataset::load(&bundled("sim-aruco-grid-2x5")).unwrap();
     let err = base_to_base(&board, B2bMethod::Multimarker, &RefineOptions::default()).unwrap_err();
-    assert!(matches!(err, PipelineError::Invalid(_)), "{err}");
+    assert!(
+        matches!(err, PipelineError::MethodTargetMismatch { .. }),
+        "{err}"
+    );
     assert!(err.to_string().contains("--method board"), "{err}");
     let mm = Dataset::load(&bundled("sim-multimarker-4x3-2x10")).unwrap();
     let err = base_to_base(&mm, B2bMethod::Board, &RefineOptions::default()).unwrap_err();

@@ -41,26 +41,26 @@ use svg::{Axes, GREEN, GREY, LEGEND_Y, PALETTE, RED, Svg, escape, legend};
 /// Errors of this crate; each names the file or field at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {
-    #[error("{path}: cannot read: {source}")]
+    #[error("{path}: cannot read")]
     Read {
         path: PathBuf,
         source: std::io::Error,
     },
     /// serde_json's message carries the line and column.
-    #[error("{path}: not a valid {what}: {source}")]
+    #[error("{path}: not a valid {what}")]
     Parse {
         path: PathBuf,
         what: &'static str,
         source: serde_json::Error,
     },
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Invalid {
         path: PathBuf,
         source: ProtocolError,
     },
     #[error("{field}: {reason}")]
     Input { field: String, reason: String },
-    #[error("{path}: cannot write: {source}")]
+    #[error("{path}: cannot write")]
     Write {
         path: PathBuf,
         source: std::io::Error,
@@ -1245,4 +1245,54 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
         index,
         plots: files,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The message leaves its source out: the source's text is not in the top message
+    /// and appears exactly once in the chain "a: b: c" that binaries print.
+    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
+        let cause = e
+            .source()
+            .expect("the error keeps its cause as source")
+            .to_string();
+        assert!(
+            !e.to_string().contains(&cause),
+            "{e} repeats its source {cause}"
+        );
+        let mut chain = e.to_string();
+        let mut next = e.source();
+        while let Some(c) = next {
+            chain = format!("{chain}: {c}");
+            next = c.source();
+        }
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let io = || std::io::Error::new(std::io::ErrorKind::NotFound, "missing for the test");
+        let path = PathBuf::from("/out/RESULT.json");
+        assert_cause_once(&ReportError::Read {
+            path: path.clone(),
+            source: io(),
+        });
+        assert_cause_once(&ReportError::Write {
+            path: path.clone(),
+            source: io(),
+        });
+        let source = serde_json::from_str::<serde_json::Value>("{ nope").unwrap_err();
+        assert_cause_once(&ReportError::Parse {
+            path: path.clone(),
+            what: "result",
+            source,
+        });
+        let source = ProtocolError::BadField {
+            field: "method".into(),
+            reason: "empty".into(),
+        };
+        assert_cause_once(&ReportError::Invalid { path, source });
+    }
 }

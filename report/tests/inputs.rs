@@ -8,6 +8,17 @@ use b2b_protocol::{CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResul
 use b2b_report::{CaptureDetail, ReportError, ReportInputs, TouchDetail, write_report};
 use nalgebra::{Isometry3, Vector3};
 
+/// The error and its causes, "a: b: c", as the binaries print it.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut next = e.source();
+    while let Some(c) = next {
+        text = format!("{text}: {c}");
+        next = c.source();
+    }
+    text
+}
+
 fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/fixtures")
@@ -29,7 +40,7 @@ fn missing_and_malformed_files_are_named_in_the_error() {
     )
     .unwrap();
     let err = ReportInputs::from_files(&broken, None).unwrap_err();
-    let msg = err.to_string();
+    let msg = chain(&err);
     assert!(
         msg.contains("RESULT.json") && msg.contains("line 3"),
         "{msg}"
@@ -40,9 +51,7 @@ fn missing_and_malformed_files_are_named_in_the_error() {
     let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
     v["T_base1_base2"]["q"] = serde_json::json!([0.0, 0.0, 0.0, 2.0]);
     std::fs::write(&broken, v.to_string()).unwrap();
-    let msg = ReportInputs::from_files(&broken, None)
-        .unwrap_err()
-        .to_string();
+    let msg = chain(&ReportInputs::from_files(&broken, None).unwrap_err());
     assert!(
         msg.contains("RESULT.json") && msg.contains("T_base1_base2.q"),
         "{msg}"
@@ -54,9 +63,7 @@ fn missing_and_malformed_files_are_named_in_the_error() {
     let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
     v["within_predicted_p95"] = serde_json::json!(96.0);
     std::fs::write(&verify, v.to_string()).unwrap();
-    let msg = ReportInputs::from_files(&fixture("RESULT.json"), Some(&verify))
-        .unwrap_err()
-        .to_string();
+    let msg = chain(&ReportInputs::from_files(&fixture("RESULT.json"), Some(&verify)).unwrap_err());
     assert!(
         msg.contains("VERIFY.json") && msg.contains("within_predicted_p95"),
         "{msg}"

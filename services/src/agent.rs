@@ -21,7 +21,8 @@ use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::rgbd::{RgbdOptions, capture_view};
 use b2b_pipeline::{
-    HandEyeChoice, Observation, RobotObservations, RobotSetup, hand_eye, observe_capture,
+    HandEyeChoice, Observation, RobotObservations, RobotSetup, error_chain, hand_eye,
+    observe_capture,
 };
 use b2b_protocol::messages::{
     AgentState, AgentStatus, BoardObservation, Capture, Envelope, FeatureSet, HandEyeUpdate,
@@ -220,8 +221,8 @@ impl ReplaySource {
             return Ok(None);
         }
         let view = capture_view(&self.ds, robot, &self.setup.camera, unit, cap, options)
-            .map_err(|e| e.to_string())?;
-        view.to_feature_set().map(Some).map_err(|e| e.to_string())
+            .map_err(|e| error_chain(&e))?;
+        view.to_feature_set().map(Some).map_err(|e| error_chain(&e))
     }
 }
 
@@ -632,7 +633,7 @@ impl CaptureLoop {
                 &he.estimate.flange_from_camera,
                 &intrinsics(&cap.camera),
             ) {
-                tracing::warn!("rerun: {e}");
+                tracing::warn!("rerun: {}", error_chain(&e));
             }
             link.status.send("hand_eye", update)?;
         }
@@ -695,7 +696,7 @@ fn record(opts: &AgentOptions, cap: &SourceCapture, msg: &Capture) {
             None => Ok(()),
         });
     if let Err(e) = logged {
-        tracing::warn!("rerun: {e}");
+        tracing::warn!("rerun: {}", error_chain(&e));
     }
 }
 

@@ -161,7 +161,10 @@ pub fn run_cart(
                     match socket.recv_from(&mut rx) {
                         Ok((n, from)) if from == client => {
                             if let Err(e) = controller.handle_datagram(Instant::now(), &rx[..n]) {
-                                tracing::warn!("cart: rejected FRI datagram: {e}");
+                                tracing::warn!(
+                                    "cart: rejected FRI datagram: {}",
+                                    b2b_pipeline::error_chain(&e)
+                                );
                             }
                             if let Ok(mut s) = state.lock() {
                                 s.heard = Instant::now();

@@ -133,7 +133,10 @@ pub fn finish_recording(rec: b2b_viz::Recorder) {
         return;
     }
     if let Err(e) = rec.finish() {
-        eprintln!("warning: the rerun recording did not finish cleanly: {e}");
+        eprintln!(
+            "warning: the rerun recording did not finish cleanly: {}",
+            b2b_pipeline::error_chain(&e)
+        );
     }
 }
 
@@ -154,7 +157,7 @@ pub fn log_result(
     if ids.len() >= 2
         && let Err(e) = rec.log_result(result, [ids[0].as_str(), ids[1].as_str()], 1.0)
     {
-        tracing::warn!("rerun: {e}");
+        tracing::warn!("rerun: {}", b2b_pipeline::error_chain(&e));
     }
 }
 
@@ -174,8 +177,9 @@ pub fn run_main(body: impl FnOnce() -> anyhow::Result<()>) -> std::process::Exit
     match body() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            let chain: Vec<String> = e.chain().map(|c| c.to_string()).collect();
-            eprintln!("error: {}", chain.join(": "));
+            // `{:#}` prints the chain "a: b: c"; every library message leaves its
+            // source out, so each cause appears once.
+            eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
         }
     }

@@ -91,16 +91,16 @@ impl LiveTarget {
             &frame.grey,
         ) {
             Ok(i) => i,
-            Err(e) => return (Err(reject(e.to_string())), None),
+            Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), None),
         };
         let sharpness = img.laplacian_variance().ok();
         let detection = match b2b_vision::detect_checkerboard(&img, &self.spec) {
             Ok(d) => d,
-            Err(e) => return (Err(reject(e.to_string())), sharpness),
+            Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
         };
         let pose = match b2b_vision::board_pose(&detection, &frame.camera) {
             Ok(p) => p,
-            Err(e) => return (Err(reject(e.to_string())), sharpness),
+            Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
         };
         (
             Ok(Observation {

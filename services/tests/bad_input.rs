@@ -181,3 +181,28 @@ fn oversized_png_header_fails_before_decoding() {
     fake_png(&dir.join("robot1/images/003.png"), 32000, 32000);
     both_fail(&dir, &["003.png", "claims 32000x32000"], 5.0);
 }
+
+/// The review's example: every capture of a robot unusable printed "too few
+/// captures: 0, need at least 3" twice (in the message and again as its source).
+/// Each cause is printed once, in the chain "a: b: c".
+#[test]
+fn no_usable_capture_prints_the_cause_once() {
+    let (_tmp, dir) = sim_copy();
+    for e in std::fs::read_dir(dir.join("robot1/images")).unwrap() {
+        fake_png(&e.unwrap().path(), 640, 480);
+    }
+    let out_dir = tempfile::tempdir().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["handeye", "--dataset"])
+        .arg(&dir)
+        .args(["--robot", "robot1", "--out"])
+        .arg(out_dir.path().join("h.json"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    eprintln!("exit {:?}: {}", o.status.code(), stderr.trim());
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    let cause = "too few captures: 0, need at least 3";
+    assert_eq!(stderr.matches(cause).count(), 1, "{stderr}");
+    assert!(stderr.contains("robot1"), "{stderr}");
+}

@@ -50,7 +50,7 @@ pub enum SimError {
     },
 
     /// A file could not be read or written.
-    #[error("{}: {source}", file.display())]
+    #[error("{}", file.display())]
     Io {
         file: PathBuf,
         #[source]
@@ -66,7 +66,7 @@ pub enum SimError {
     Dataset(#[from] b2b_dataset::DatasetError),
 
     /// The camera model rejected the scene's intrinsics.
-    #[error("camera: {0}")]
+    #[error("camera")]
     Camera(#[from] b2b_calib::CalibError),
 }
 
@@ -83,5 +83,53 @@ impl SimError {
             what,
             reason: reason.into(),
         }
+    }
+}
+
+/// The error and its causes on one line, "a: b: c": for a reason kept as text.
+/// Each message leaves its source out, so the chain prints every cause once.
+pub(crate) fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The message leaves its source out: the source's text is not in the top message
+    /// and appears exactly once in the chain "a: b: c" that binaries print.
+    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
+        let cause = e
+            .source()
+            .expect("the error keeps its cause as source")
+            .to_string();
+        assert!(
+            !e.to_string().contains(&cause),
+            "{e} repeats its source {cause}"
+        );
+        let mut chain = e.to_string();
+        let mut next = e.source();
+        while let Some(c) = next {
+            chain = format!("{chain}: {c}");
+            next = c.source();
+        }
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "missing for the test");
+        assert_cause_once(&SimError::io("/scenes/s.json", io));
+        let camera = b2b_calib::CalibError::TooFewCaptures { got: 0, need: 3 };
+        let e = SimError::from(camera);
+        assert_cause_once(&e);
+        assert_eq!(chain(&e), "camera: too few captures: 0, need at least 3");
     }
 }

@@ -401,9 +401,9 @@ impl Scene {
                 .to_iso(file, &f("flange_from_camera"))?;
             r.error
                 .validate()
-                .map_err(|e| bad(&f("error"), e.to_string()))?;
+                .map_err(|e| bad(&f("error"), crate::error::chain(&e)))?;
             self.camera(i)
-                .map_err(|e| bad(&f("camera"), e.to_string()))?;
+                .map_err(|e| bad(&f("camera"), crate::error::chain(&e)))?;
         }
         let v = &self.viewpoints;
         if v.count == 0 || v.count > 10_000 {
@@ -494,7 +494,8 @@ impl Scene {
             }
         }
         if let Some(d) = &self.depth {
-            d.validate().map_err(|e| bad("depth", e.to_string()))?;
+            d.validate()
+                .map_err(|e| bad("depth", crate::error::chain(&e)))?;
         }
         Ok(())
     }
@@ -622,7 +623,7 @@ impl Scene {
         }
         pose.to_iso(file, "target.base1_from_target")?;
         // Layout errors (dictionary, ids, overlaps) name the field too.
-        crate::target::TargetModel::build(t).map_err(|e| bad("target", e.to_string()))?;
+        crate::target::TargetModel::build(t).map_err(|e| bad("target", crate::error::chain(&e)))?;
         Ok(())
     }
 

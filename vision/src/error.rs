@@ -7,7 +7,7 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum VisionError {
     /// The file could not be read at all (missing, a directory, no permission).
-    #[error("{}: cannot read image file: {source}", path.display())]
+    #[error("{}: cannot read image file", path.display())]
     Io {
         path: PathBuf,
         #[source]
@@ -123,7 +123,7 @@ pub enum VisionError {
     #[error("printable target: {0}")]
     Printable(String),
     /// OpenCV threw; `context` says which call.
-    #[error("OpenCV {context}: {source}")]
+    #[error("OpenCV {context}")]
     OpenCv {
         context: &'static str,
         #[source]
@@ -139,5 +139,62 @@ pub(crate) trait CvContext<T> {
 impl<T> CvContext<T> for opencv::Result<T> {
     fn cv(self, context: &'static str) -> Result<T, VisionError> {
         self.map_err(|source| VisionError::OpenCv { context, source })
+    }
+}
+
+/// The error and its causes on one line, "a: b: c": for a reason kept as text.
+/// Each message leaves its source out, so the chain prints every cause once.
+pub(crate) fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The message leaves its source out: the source's text is not in the top message
+    /// and appears exactly once in the chain "a: b: c" that binaries print.
+    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
+        let cause = e
+            .source()
+            .expect("the error keeps its cause as source")
+            .to_string();
+        assert!(
+            !e.to_string().contains(&cause),
+            "{e} repeats its source {cause}"
+        );
+        let mut chain = e.to_string();
+        let mut next = e.source();
+        while let Some(c) = next {
+            chain = format!("{chain}: {c}");
+            next = c.source();
+        }
+        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
+    }
+
+    #[test]
+    fn every_wrapped_error_prints_its_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "missing for the test");
+        assert_cause_once(&VisionError::Io {
+            path: "/d/robot1/images/000.png".into(),
+            source: io,
+        });
+        let source = opencv::Error::new(opencv::core::StsBadArg, "bad argument for the test");
+        let e = VisionError::OpenCv {
+            context: "findChessboardCornersSB",
+            source,
+        };
+        assert_cause_once(&e);
+        assert!(
+            chain(&e).starts_with("OpenCV findChessboardCornersSB: "),
+            "{e}"
+        );
     }
 }

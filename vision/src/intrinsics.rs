@@ -24,7 +24,7 @@ use opencv::core::{Mat, Point2f, Point3f, Size, TermCriteria, Vector};
 use opencv::prelude::*;
 
 use crate::checkerboard::{BoardDetection, CheckerboardSpec};
-use crate::error::{CvContext, VisionError};
+use crate::error::{CvContext, VisionError, chain};
 use crate::image::GrayImage;
 use crate::markers::CharucoSpec;
 
@@ -183,7 +183,7 @@ fn calibrate_pass(
             rejected: None,
         };
         match detect(img, target, guess) {
-            Err(e) => report.rejected = Some(format!("board not found: {e}")),
+            Err(e) => report.rejected = Some(format!("board not found: {}", chain(&e))),
             Ok(det) => {
                 report.corners = det.pixels.len();
                 views.push((k, det));
@@ -513,7 +513,7 @@ pub fn calibrate_intrinsics_from_dir(
                 name,
                 corners: 0,
                 rms_px: None,
-                rejected: Some(format!("unreadable: {e}")),
+                rejected: Some(format!("unreadable: {}", chain(&e))),
             }),
         }
     }

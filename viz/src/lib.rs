@@ -74,10 +74,10 @@ pub const TIMELINE_TOUCH: &str = "touch";
 #[derive(Debug, thiserror::Error)]
 pub enum VizError {
     /// Rerun could not open the sink or serialise a value.
-    #[error("rerun recording: {0}")]
+    #[error("rerun recording")]
     Recording(#[from] rerun::RecordingStreamError),
     /// The recording could not be flushed to its sink.
-    #[error("rerun flush: {0}")]
+    #[error("rerun flush")]
     Flush(#[from] rerun::sink::SinkFlushError),
     /// A value handed to a `log_*` call that cannot be drawn.
     #[error("{what}: {reason}")]

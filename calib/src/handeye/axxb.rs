@@ -193,17 +193,19 @@ pub(super) fn daniilidis(pairs: &[Motion]) -> Result<Iso3, CalibError> {
             Some(a) if a.0 >= c.0 => Some(a),
             _ => Some(c),
         })
-        .ok_or_else(|| {
-            CalibError::Inconsistent("Daniilidis: the null space gives no dual quaternion".into())
+        .ok_or(CalibError::SolverBreakdown {
+            method: "Daniilidis",
+            reason: "the null space gives no dual quaternion",
         })?;
     let (_, al, be) = best;
     let real = al * u1 + be * u2;
     let dual = al * d1 + be * d2;
     let norm = real.norm();
     if norm.is_nan() || norm <= 1e-12 {
-        return Err(CalibError::Inconsistent(
-            "Daniilidis: the dual-quaternion solution has a vanishing rotation part".into(),
-        ));
+        return Err(CalibError::SolverBreakdown {
+            method: "Daniilidis",
+            reason: "the dual-quaternion solution has a vanishing rotation part",
+        });
     }
     let (real, dual) = (real / norm, dual / norm);
     let q = Quaternion::new(real[0], real[1], real[2], real[3]);

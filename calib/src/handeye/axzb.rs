@@ -46,9 +46,10 @@ pub(super) fn shah(
     }
     let svd = t.svd(true, true);
     let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(CalibError::Inconsistent(
-            "Shah: SVD did not converge".into(),
-        ));
+        return Err(CalibError::SolverBreakdown {
+            method: "Shah",
+            reason: "SVD did not converge",
+        });
     };
     // `svd` sorts singular values in descending order.
     let vx: Vec<f64> = v_t.row(0).iter().copied().collect();

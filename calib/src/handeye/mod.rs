@@ -197,10 +197,11 @@ impl FromStr for HandEyeMethod {
             .find(|m| m.name().eq_ignore_ascii_case(s.trim()))
             .ok_or_else(|| {
                 let names: Vec<&str> = HandEyeMethod::ALL.iter().map(|m| m.name()).collect();
-                CalibError::Inconsistent(format!(
-                    "unknown hand-eye method '{s}': expected one of {}",
-                    names.join(", ")
-                ))
+                CalibError::UnknownMethod {
+                    kind: "hand-eye",
+                    name: s.to_owned(),
+                    expected: names.join(", "),
+                }
             })
     }
 }
@@ -243,10 +244,11 @@ impl FromStr for RobotWorldMethod {
             .find(|m| m.name().eq_ignore_ascii_case(s.trim()))
             .ok_or_else(|| {
                 let names: Vec<&str> = RobotWorldMethod::ALL.iter().map(|m| m.name()).collect();
-                CalibError::Inconsistent(format!(
-                    "unknown robot-world method '{s}': expected one of {}",
-                    names.join(", ")
-                ))
+                CalibError::UnknownMethod {
+                    kind: "robot-world",
+                    name: s.to_owned(),
+                    expected: names.join(", "),
+                }
             })
     }
 }
@@ -509,9 +511,9 @@ fn solve_normal<const N: usize>(
 }
 
 fn rank_deficient(what: &str) -> CalibError {
-    CalibError::Inconsistent(format!(
-        "the {what} least-squares system is rank deficient: the motions do not determine the solution"
-    ))
+    CalibError::RankDeficient {
+        what: what.to_owned(),
+    }
 }
 
 /// OpenCV's `normalizeRotation`: scale to `det = +1` (flipping the sign if the
@@ -519,9 +521,10 @@ fn rank_deficient(what: &str) -> CalibError {
 fn normalize_rotation(r: &Matrix3<f64>, what: &str) -> Result<UnitQuaternion<f64>, CalibError> {
     let det = r.determinant();
     if !det.is_finite() || det.abs() < 1e-12 {
-        return Err(CalibError::Inconsistent(format!(
-            "the {what} linear solution has a singular rotation block (det = {det:.3e})"
-        )));
+        return Err(CalibError::SingularRotationBlock {
+            what: what.to_owned(),
+            det,
+        });
     }
     let m = if det < 0.0 { -r } else { *r };
     Ok(crate::pose::nearest_rotation(&m))

@@ -105,8 +105,20 @@ impl Fixture {
     }
 }
 
+/// The error and its causes, "a: b: c", as the binaries print it: each message
+/// leaves its source out, so the whole message is the chain.
+pub fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut next = e.source();
+    while let Some(c) = next {
+        text = format!("{text}: {c}");
+        next = c.source();
+    }
+    text
+}
+
 pub fn assert_message(e: &DatasetError, file: &Path, parts: &[&str]) {
-    let msg = e.to_string();
+    let msg = chain(e);
     let file = file.display().to_string();
     assert!(msg.contains(&file), "message does not name {file}: {msg}");
     for part in parts {

@@ -141,7 +141,7 @@ fn run(args: &Args) -> Result<bool, Box<dyn std::error::Error>> {
         match socket.recv_from(&mut rx) {
             Ok((n, from)) if from == args.client => {
                 if let Err(e) = sim.handle_datagram(Instant::now(), &rx[..n]) {
-                    eprintln!("fri-sim-controller: rejected datagram: {e}");
+                    eprintln!("fri-sim-controller: rejected datagram: {}", chain(&e));
                 }
             }
             Ok(_) => {}
@@ -186,8 +186,21 @@ fn main() -> ExitCode {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::FAILURE,
         Err(e) => {
-            eprintln!("fri-sim-controller: {e}");
+            eprintln!("fri-sim-controller: {}", chain(e.as_ref()));
             ExitCode::from(2)
         }
     }
+}
+
+/// The error and its causes, "a: b: c": each message leaves its source out, so
+/// every cause is printed once.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }

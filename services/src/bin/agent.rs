@@ -557,7 +557,7 @@ fn main() -> std::process::ExitCode {
                     })
                 });
                 if let Err(e) = logged {
-                    eprintln!("warning: rerun: {e}");
+                    eprintln!("warning: rerun: {}", b2b_pipeline::error_chain(&e));
                 }
             }
             finish_recording(recorder);

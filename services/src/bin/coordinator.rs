@@ -329,7 +329,7 @@ fn main() -> std::process::ExitCode {
                     })
                     .collect();
                 if let Err(e) = recorder.log_touches(&b, &rows) {
-                    eprintln!("warning: rerun: {e}");
+                    eprintln!("warning: rerun: {}", b2b_pipeline::error_chain(&e));
                 }
             }
             finish_recording(recorder);

@@ -28,8 +28,20 @@ enum Command {
     },
 }
 
-fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
+fn main() -> std::process::ExitCode {
+    match run(Cli::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // `{:#}` prints the chain "a: b: c"; every library message leaves its
+            // source out, so each cause appears once.
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
         Command::Generate { scene, seed, out } => {
             let summary = b2b_sim::generate::generate(&scene, seed, &out).with_context(|| {
                 format!("generating {} from {}", out.display(), scene.display())
