@@ -81,9 +81,9 @@ const CASES: [Case; 2] = [
         ours_limit: LIMIT,
         opencv_limit: LIMIT,
     },
-    // 7x5 squares, partly occluded, 2 x 10 captures. OpenCV 4.6's ChArUco corners
-    // are ~0.7 px off (see vision/benches/detect.rs), and its closed form on them
-    // lands ~5 mm / 0.46 deg from the truth: a poorer result, not a failure.
+    // 7x5 squares, partly occluded, 2 x 10 captures. OpenCV's pipeline lands
+    // ~5 mm / 0.46 deg from the truth here (4.6's ChArUco corners are ~0.7 px off,
+    // see vision/benches/detect.rs): a poorer result, not a failure.
     Case {
         name: "sim-charuco-occluded-2x10",
         ours_limit: LIMIT,
