@@ -5,11 +5,11 @@ mod common;
 
 use std::time::Duration;
 
+use b2b_robot::{JointLimits, Joints, WorkspaceBox};
 use common::{Harness, toy_fk};
 use kuka_fri::codec;
 use kuka_fri::{
-    ClientSession, JointLimits, Joints, LinkConfig, SafetyGuard, SessionConfig, SessionState,
-    SimConfig, Trajectory, WorkspaceBox,
+    ClientSession, LinkConfig, SafetyGuard, SessionConfig, SessionState, SimConfig, Trajectory,
 };
 use proptest::prelude::*;
 
