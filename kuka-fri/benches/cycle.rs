@@ -7,12 +7,12 @@
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
+use b2b_robot::{JointLimits, Joints, WorkspaceBox};
 use criterion::{Criterion, criterion_group, criterion_main};
 use kuka_fri::codec;
 use kuka_fri::messages::MAX_DATAGRAM_SIZE;
 use kuka_fri::{
-    ClientSession, JointLimits, Joints, SafetyGuard, SessionConfig, SessionState, SimConfig,
-    SimulatedController, WorkspaceBox,
+    ClientSession, SafetyGuard, SessionConfig, SessionState, SimConfig, SimulatedController,
 };
 
 const N: usize = 4096;

@@ -101,34 +101,10 @@ pub enum FriError {
         /// Buffer length (or the FRI maximum, whichever is smaller).
         available: usize,
     },
-    /// A commanded joint position outside the joint limits.
-    #[error("joint A{} position {value:.4} rad outside [{min:.4}, {max:.4}]", joint + 1)]
-    JointLimit {
-        /// Joint index (0-based).
-        joint: usize,
-        /// Commanded value (rad).
-        value: f64,
-        /// Lower limit (rad).
-        min: f64,
-        /// Upper limit (rad).
-        max: f64,
-    },
-    /// A commanded step that implies a joint velocity above the limit.
-    #[error("joint A{} velocity {velocity:.4} rad/s exceeds limit {limit:.4} rad/s", joint + 1)]
-    VelocityLimit {
-        /// Joint index (0-based).
-        joint: usize,
-        /// Implied velocity magnitude (rad/s).
-        velocity: f64,
-        /// Limit (rad/s).
-        limit: f64,
-    },
-    /// The flange would leave the configured Cartesian workspace box.
-    #[error("flange position [{:.4}, {:.4}, {:.4}] m outside the workspace box", position[0], position[1], position[2])]
-    Workspace {
-        /// Flange position in the robot base frame (m).
-        position: [f64; 3],
-    },
+    /// A command outside the safety envelope (joint limits, velocity limits, workspace
+    /// box), or limits that cannot describe a real arm: `b2b_robot`'s verdict.
+    #[error(transparent)]
+    Robot(#[from] b2b_robot::RobotError),
     /// A command or motion was requested outside COMMANDING_ACTIVE.
     #[error("commands are only sent in COMMANDING_ACTIVE; session is {state}")]
     NotCommanding {

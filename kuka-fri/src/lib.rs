@@ -8,7 +8,7 @@
 //! |---|---|---|
 //! | [`messages`] | prost types written from the FRI 1.15 field list; 2.x differences documented | none |
 //! | [`codec`] | datagram ⇄ message with size, identifier, required-field and enum checks | none |
-//! | [`limits`] | iiwa 7 / 14 joint limits, workspace box, the [`SafetyGuard`] on every command | none |
+//! | [`guard`] | the [`SafetyGuard`] on every command: `b2b_robot`'s limits, box and kinematics | none |
 //! | [`trajectory`] | synchronised trapezoidal joint trajectories | none |
 //! | [`joints`] | controller-stamped joint states, stillness detection | none |
 //! | [`session`] | [`ClientSession`], the sans-I/O client state machine | none (fed bytes and instants) |
@@ -18,7 +18,8 @@
 //! The binary `fri-sim-controller` serves the simulated controller over UDP.
 //!
 //! ```
-//! use kuka_fri::{ClientSession, JointLimits, SafetyGuard, SessionConfig, WorkspaceBox};
+//! use b2b_robot::{JointLimits, WorkspaceBox};
+//! use kuka_fri::{ClientSession, SafetyGuard, SessionConfig};
 //! # fn fk(_q: &[f64; 7]) -> [f64; 3] { [0.0, 0.0, 1.0] }
 //! let guard = SafetyGuard::new(JointLimits::iiwa7(), WorkspaceBox::unbounded(), fk)?;
 //! let mut session = ClientSession::new(SessionConfig::default(), guard);
@@ -31,8 +32,8 @@
 
 pub mod codec;
 pub mod error;
+pub mod guard;
 pub mod joints;
-pub mod limits;
 pub mod messages;
 pub mod session;
 pub mod sim;
@@ -40,8 +41,8 @@ pub mod trajectory;
 pub mod udp;
 
 pub use error::{FriError, Result};
+pub use guard::SafetyGuard;
 pub use joints::{ControllerTime, JointHistory, JointState};
-pub use limits::{ForwardKinematics, JointLimits, Joints, SafetyGuard, WorkspaceBox};
 pub use messages::{ConnectionQuality, SessionState};
 pub use session::{ClientSession, Event, MonitorSnapshot, SessionConfig, SessionStats};
 pub use sim::{Link, LinkConfig, SimConfig, SimStats, SimulatedController};

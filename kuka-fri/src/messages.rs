@@ -46,8 +46,8 @@ pub const LBR_MONITOR_MESSAGE_ID: u32 = 0x0024_5142;
 pub const LBR_COMMAND_MESSAGE_ID: u32 = 0x0003_4001;
 /// `FRI_MONITOR_MSG_MAX_SIZE` and `FRI_COMMAND_MSG_MAX_SIZE`: largest datagram either side sends.
 pub const MAX_DATAGRAM_SIZE: usize = 1500;
-/// Number of joints of an LBR iiwa.
-pub const NUM_JOINTS: usize = 7;
+/// Number of joint values in an LBR message: the arm's joints.
+pub const NUM_JOINTS: usize = b2b_robot::N_JOINTS;
 /// The port the client binds by default (KUKA allows 30200..=30209).
 pub const DEFAULT_PORT: u16 = 30200;
 

@@ -30,10 +30,12 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+use b2b_robot::Joints;
+
 use crate::codec::{self, MONITORING};
 use crate::error::{FriError, Result};
+use crate::guard::SafetyGuard;
 use crate::joints::{ControllerTime, JointHistory, JointState};
-use crate::limits::{Joints, SafetyGuard};
 use crate::messages::{
     ConnectionQuality, FriCommandMessage, FriMonitoringMessage, JointValues,
     LBR_COMMAND_MESSAGE_ID, MessageCommandData, SessionState,

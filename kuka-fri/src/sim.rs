@@ -34,10 +34,11 @@ use std::time::{Duration, Instant};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
+use b2b_robot::{JointLimits, Joints};
+
 use crate::codec;
 use crate::error::{FriError, Result};
 use crate::joints::ControllerTime;
-use crate::limits::{JointLimits, Joints};
 use crate::messages::{
     ClientCommandMode, ConnectionInfo, ConnectionQuality, ControlMode, DriveState,
     FriMonitoringMessage, JointValues, LBR_MONITOR_MESSAGE_ID, MessageIpoData, MessageMonitorData,

@@ -12,8 +12,9 @@
 //! The profile is stored as constant-acceleration segments so a braking profile (from any
 //! point, at the planned deceleration) is the same type.
 
+use b2b_robot::{JointLimits, Joints};
+
 use crate::error::{FriError, Result};
-use crate::limits::{JointLimits, Joints};
 use crate::messages::NUM_JOINTS;
 
 /// One segment of constant path acceleration.
@@ -41,7 +42,7 @@ const MIN_DISPLACEMENT: f64 = 1e-12;
 
 impl Trajectory {
     /// Plans a rest-to-rest motion from `start` to `end` within `limits`' velocities and
-    /// accelerations. Position limits are not checked here (see [`crate::limits::SafetyGuard`]).
+    /// accelerations. Position limits are not checked here (see [`crate::SafetyGuard`]).
     pub fn plan(start: &Joints, end: &Joints, limits: &JointLimits) -> Result<Self> {
         limits.validate()?;
         for j in 0..NUM_JOINTS {

@@ -17,9 +17,11 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use b2b_robot::Joints;
+
 use crate::error::{FriError, Result};
+use crate::guard::SafetyGuard;
 use crate::joints::JointState;
-use crate::limits::{Joints, SafetyGuard};
 use crate::messages::{MAX_DATAGRAM_SIZE, SessionState};
 use crate::session::{ClientSession, Event, SessionConfig, SessionStats};
 

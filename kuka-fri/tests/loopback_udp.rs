@@ -4,9 +4,8 @@ use std::net::SocketAddr;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use kuka_fri::{
-    FriClient, FriClientConfig, JointLimits, Joints, SafetyGuard, SessionState, WorkspaceBox,
-};
+use b2b_robot::{JointLimits, Joints, WorkspaceBox};
+use kuka_fri::{FriClient, FriClientConfig, SafetyGuard, SessionState};
 
 fn fk(q: &Joints) -> [f64; 3] {
     // Any smooth function will do for this test; the box is generous.

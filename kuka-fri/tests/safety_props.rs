@@ -5,11 +5,11 @@ mod common;
 
 use std::time::Duration;
 
+use b2b_robot::{JointLimits, Joints, WorkspaceBox};
 use common::{Harness, toy_fk};
 use kuka_fri::codec;
 use kuka_fri::{
-    ClientSession, JointLimits, Joints, LinkConfig, SafetyGuard, SessionConfig, SessionState,
-    SimConfig, Trajectory, WorkspaceBox,
+    ClientSession, LinkConfig, SafetyGuard, SessionConfig, SessionState, SimConfig, Trajectory,
 };
 use proptest::prelude::*;
 
@@ -50,6 +50,40 @@ fn near_start() -> impl Strategy<Value = Action> {
         let start = SimConfig::default().initial_q;
         Action::Position(std::array::from_fn(|j| start[j] + d[j]))
     })
+}
+
+/// Every command sent in COMMANDING_ACTIVE is inside the joint limits and the box, and
+/// no step between two is faster than the velocity limits; the controller saw no
+/// violation.
+fn check_sent(
+    h: &Harness,
+    limits: &JointLimits,
+    workspace: &WorkspaceBox,
+) -> Result<(), TestCaseError> {
+    let mut prev: Option<(Joints, u32)> = None;
+    for c in &h.sent {
+        if c.state != SessionState::CommandingActive {
+            prev = None;
+            continue;
+        }
+        let q = c.q.expect("commands carry positions");
+        prop_assert!(limits.check_position(&q, 0.0).is_ok(), "joint limit: {q:?}");
+        prop_assert!(workspace.contains(&toy_fk(&q)), "outside box: {q:?}");
+        if let Some((pq, pseq)) = prev {
+            let dt = f64::from(c.reflected.wrapping_sub(pseq)) * 0.005;
+            prop_assert!(dt > 0.0);
+            for j in 0..7 {
+                prop_assert!(
+                    (q[j] - pq[j]).abs() <= limits.velocity[j] * dt * (1.0 + 1e-9),
+                    "joint {j} too fast: {} rad in {dt} s",
+                    (q[j] - pq[j]).abs()
+                );
+            }
+        }
+        prev = Some((q, c.reflected));
+    }
+    prop_assert_eq!(h.sim.stats().violations, 0);
+    Ok(())
 }
 
 proptest! {
@@ -95,26 +129,35 @@ proptest! {
         }
         h.run_for(Duration::from_millis(500));
 
-        let mut prev: Option<(Joints, u32)> = None;
-        for c in &h.sent {
-            if c.state != SessionState::CommandingActive {
-                prev = None;
-                continue;
-            }
-            let q = c.q.expect("commands carry positions");
-            prop_assert!(limits.check_position(&q, 0.0).is_ok(), "joint limit: {q:?}");
-            prop_assert!(workspace.contains(&toy_fk(&q)), "outside box: {q:?}");
-            if let Some((pq, pseq)) = prev {
-                let dt = f64::from(c.reflected.wrapping_sub(pseq)) * 0.005;
-                prop_assert!(dt > 0.0);
-                for j in 0..7 {
-                    prop_assert!((q[j] - pq[j]).abs() <= limits.velocity[j] * dt * (1.0 + 1e-9),
-                        "joint {j} too fast: {} rad in {dt} s", (q[j] - pq[j]).abs());
-                }
-            }
-            prev = Some((q, c.reflected));
+        check_sent(&h, &limits, &workspace)?;
+    }
+
+    /// Long motions towards targets around and beyond the joint limits, through and out
+    /// of the box: every one whose target or path would leave them must be refused or
+    /// stopped. (The test above moves for at most a few seconds in all; here each motion
+    /// gets three, so a guard that let a motion through would be seen to leave.)
+    #[test]
+    fn long_motions_never_leave_the_limits_or_box(
+        targets in proptest::collection::vec(proptest::array::uniform7(-1.2f64..1.2), 1..4),
+        zmax in 0.9f64..1.6,
+        rmax in 0.5f64..1.3,
+        seed in any::<u64>(),
+        iiwa14 in any::<bool>(),
+    ) {
+        let limits = if iiwa14 { JointLimits::iiwa14() } else { JointLimits::iiwa7() };
+        let workspace = WorkspaceBox::new([-rmax, -rmax, 0.2], [rmax, rmax, zmax]).unwrap();
+        let start = SimConfig::default().initial_q;
+        prop_assume!(workspace.contains(&toy_fk(&start)));
+        let guard = SafetyGuard::new(limits, workspace, toy_fk).unwrap();
+        let sim_cfg = SimConfig { limits, seed, ..SimConfig::default() };
+        let mut h = Harness::new(sim_cfg, LinkConfig::perfect(), guard);
+        prop_assert!(h.try_reach_commanding());
+        for u in targets {
+            let q: Joints = std::array::from_fn(|j| u[j] * limits.position_max[j]);
+            let _ = h.client.start_motion(q);
+            h.run_for(Duration::from_secs(3));
         }
-        prop_assert_eq!(h.sim.stats().violations, 0);
+        check_sent(&h, &limits, &workspace)?;
     }
 
     #[test]

@@ -4,8 +4,9 @@ mod common;
 
 use std::time::Duration;
 
+use b2b_robot::{JointLimits, Joints};
 use common::{Harness, SentCommand};
-use kuka_fri::{Event, JointLimits, Joints, LinkConfig, SessionState, SimConfig};
+use kuka_fri::{Event, LinkConfig, SessionState, SimConfig};
 
 /// Checks the wire invariants of everything the client sent.
 fn check_sent(sent: &[SentCommand], limits: &JointLimits, send_period: f64) {

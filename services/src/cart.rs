@@ -17,13 +17,13 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
 use b2b_calib::camera::CameraModel;
+use b2b_robot::{Arm, Joints};
 use b2b_sim::Iso3;
-use b2b_sim::kinematics::{Arm, IiwaModel};
 use b2b_sim::render::{RenderSettings, Renderer};
 use b2b_sim::scene::Scene;
 use b2b_sim::sensor::{DepthImage, GreyImage, expose};
 use kuka_fri::messages::MAX_DATAGRAM_SIZE;
-use kuka_fri::{JointLimits, Joints, SessionState, SimConfig, SimulatedController};
+use kuka_fri::{SessionState, SimConfig, SimulatedController};
 use rand::SeedableRng;
 
 /// One rendered frame, as the camera process publishes it.
@@ -55,14 +55,6 @@ pub struct CartOptions {
     pub send_period_ms: u32,
     /// Longest the cart runs without hearing from its client.
     pub idle_timeout: Duration,
-}
-
-/// The robot's joint limits as the controller enforces them.
-pub fn fri_limits(model: IiwaModel) -> JointLimits {
-    match model {
-        IiwaModel::Iiwa7R800 => JointLimits::iiwa7(),
-        IiwaModel::Iiwa14R820 => JointLimits::iiwa14(),
-    }
 }
 
 fn now_ns() -> u64 {
@@ -120,7 +112,7 @@ pub fn run_cart(
         .with_context(|| format!("cannot bind the FRI server to {}", opts.bind))?;
     let cfg = SimConfig {
         send_period_ms: opts.send_period_ms,
-        limits: fri_limits(spec.model),
+        limits: spec.model.limits(),
         initial_q: Arm::comfortable(),
         encoder_noise: spec.error.encoder_sigma_rad,
         seed: opts.seed.wrapping_add(r as u64 * 7919),

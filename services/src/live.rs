@@ -17,8 +17,8 @@ use anyhow::Context;
 use b2b_calib::camera::CameraModel;
 use b2b_pipeline::Observation;
 use b2b_protocol::RejectedCapture;
-use b2b_sim::kinematics::Arm;
-use kuka_fri::{FriClient, Joints, SafetyGuard, SessionState};
+use b2b_robot::{Arm, Joints};
+use kuka_fri::{FriClient, SafetyGuard, SessionState};
 use nalgebra::{Isometry3, Point2, Point3};
 
 use crate::agent::{CaptureSource, Progress, SourceCapture};

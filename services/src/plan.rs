@@ -14,8 +14,8 @@
 //! leaves the workspace is dropped rather than approached.
 
 use b2b_calib::camera::CameraModel;
-use b2b_sim::kinematics::{Arm, IkOptions};
-use kuka_fri::{Joints, SafetyGuard};
+use b2b_robot::{Arm, IkOptions, Joints};
+use kuka_fri::SafetyGuard;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
 type Iso3 = Isometry3<f64>;
@@ -204,10 +204,9 @@ pub fn reach(
     let wanted = base_from_camera * scene.flange_from_camera.inverse();
     // Out of reach for certain: the wrist centre (the flange minus the last link
     // along its axis) further from the shoulder than the two arm links can stretch.
-    let dh = &scene.arm.dh;
-    let shoulder = nalgebra::Vector3::new(0.0, 0.0, dh[0].d);
-    let wrist = (wanted * Point3::new(0.0, 0.0, -dh[6].d)).coords;
-    if (wrist - shoulder).norm() > dh[2].d.abs() + dh[4].d.abs() - 1e-3 {
+    let arm = scene.arm;
+    let wrist = arm.wrist_centre_in_base(&wanted);
+    if (wrist - arm.shoulder_in_base()).norm() > arm.max_shoulder_to_wrist_m() - 1e-3 {
         return Err("out of the arm's reach".to_owned());
     }
     let margin = scene.guard.position_margin().max(2f64.to_radians());
@@ -380,8 +379,7 @@ pub fn recentre(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use b2b_sim::kinematics::IiwaModel;
-    use kuka_fri::{JointLimits, WorkspaceBox};
+    use b2b_robot::{IiwaModel, JointLimits, WorkspaceBox};
 
     fn setup() -> (Arm, SafetyGuard, CameraModel, Vec<Point3<f64>>) {
         let arm = Arm::new(IiwaModel::Iiwa7R800);

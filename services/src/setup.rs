@@ -12,8 +12,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use b2b_protocol::Pose;
-use b2b_sim::kinematics::{Arm, IiwaModel};
-use kuka_fri::{FriClient, FriClientConfig, Joints, SafetyGuard, WorkspaceBox};
+use b2b_robot::{Arm, IiwaModel, WorkspaceBox};
+use kuka_fri::{FriClient, FriClientConfig, SafetyGuard};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -154,14 +154,11 @@ impl CellSetup {
     /// velocities scaled, the flange inside the workspace box (nominal kinematics).
     pub fn guard(&self) -> anyhow::Result<SafetyGuard> {
         let arm = Arm::new(self.model);
-        let limits = crate::cart::fri_limits(self.model).scaled(self.speed_fraction)?;
+        let limits = arm.limits.scaled(self.speed_fraction)?;
         let guard = SafetyGuard::new(
             limits,
             WorkspaceBox::new(self.workspace_min, self.workspace_max)?,
-            move |q: &Joints| {
-                let t = arm.fk(q).translation.vector;
-                [t.x, t.y, t.z]
-            },
+            arm,
         )?
         .with_position_margin(self.joint_margin_rad)?;
         Ok(guard)

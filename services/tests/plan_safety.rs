@@ -5,9 +5,9 @@
 //! FRI client then sends passes the guard again: kuka-fri's own property tests.)
 
 use b2b_calib::camera::CameraModel;
+use b2b_robot::{Arm, IiwaModel, JointLimits, Joints, WorkspaceBox};
 use b2b_services::plan::{PlanConfig, PlanScene, leg_is_safe, plan_viewpoints, reach, recentre};
-use b2b_sim::kinematics::{Arm, IiwaModel};
-use kuka_fri::{JointLimits, Joints, SafetyGuard, WorkspaceBox};
+use kuka_fri::SafetyGuard;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 use proptest::prelude::*;
 

@@ -7,15 +7,6 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum SimError {
-    /// No joint configuration inside the limits reaches the requested flange pose.
-    #[error(
-        "flange pose unreachable: best solution is {position_error_m:.3e} m / {rotation_error_rad:.3e} rad away"
-    )]
-    Unreachable {
-        position_error_m: f64,
-        rotation_error_rad: f64,
-    },
-
     /// A scene file that is not valid JSON or does not have the expected shape.
     #[error("{}: line {line}, column {column}{}: {message}", file.display(),
         if field.is_empty() { String::new() } else { format!(", field `{field}`") })]

@@ -24,10 +24,10 @@ use std::sync::Arc;
 use b2b_dataset::{
     CameraIntrinsics, Capture, Dataset, GroundTruth, Manifest, RobotData, RobotManifest, TouchPair,
 };
+use b2b_robot::{Arm, IkOptions};
 use nalgebra::{Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng as _, SeedableRng};
 
-use crate::kinematics::{Arm, IkOptions};
 use crate::render::{RenderSettings, Renderer, SceneGeometry};
 use crate::robot_error::RobotInstance;
 use crate::scene::Scene;

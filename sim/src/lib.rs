@@ -4,10 +4,12 @@
 //! Without hardware, the simulator is where accuracy is measured, so it is built to be
 //! physically honest, and the truth never leaks into what the pipeline sees:
 //!
-//! - [`kinematics`]: the LBR iiwa 7 R800 / 14 R820 DH models, limits, FK, and IK with
-//!   the 7th degree of freedom resolved towards a comfortable posture.
+//! - The arms themselves (the LBR iiwa 7 R800 / 14 R820 DH models, limits, FK, and IK
+//!   with the 7th degree of freedom resolved towards a comfortable posture) are
+//!   `b2b_robot`'s; the simulator moves them and perturbs them:
 //! - [`robot_error`]: the flange pose the controller *reports* differs from the true
-//!   one (encoder noise, repeatability, kinematic parameter errors).
+//!   one (encoder noise, repeatability, kinematic parameter errors: a perturbed copy of
+//!   the nominal DH table).
 //! - [`texture`]: what is printed on surfaces (procedural checkerboard, bitmaps such as
 //!   marker images, random texture for feature matching).
 //! - [`markers`] (OpenCV's marker dictionaries and board layouts, without OpenCV) and
@@ -51,7 +53,6 @@
 
 pub mod generate;
 pub mod image_io;
-pub mod kinematics;
 pub mod markers;
 pub mod render;
 pub mod robot_error;

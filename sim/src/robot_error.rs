@@ -21,11 +21,11 @@
 //! `FK_nominal(q + encoder noise)`; the images are rendered from the former and the
 //! dataset's `captures.csv` gets the latter.
 
+use b2b_robot::{Arm, Joints};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::kinematics::{Arm, Joints};
 use crate::{Iso3, Rng, SimError};
 
 /// `RP / σ` for an isotropic 3-D Gaussian (Maxwell distance: mean + 3 std).
@@ -165,7 +165,7 @@ impl RobotInstance {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kinematics::IiwaModel;
+    use b2b_robot::IiwaModel;
     use rand::SeedableRng;
 
     const Q: Joints = [0.2, 0.6, -0.3, -1.4, 0.2, 0.8, 0.1];

@@ -11,10 +11,10 @@
 
 use std::path::{Path, PathBuf};
 
+use b2b_robot::IiwaModel;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 
-use crate::kinematics::IiwaModel;
 use crate::render::{Lighting, Optics};
 use crate::robot_error::RobotErrorModel;
 use crate::sensor::{DepthModel, SensorNoise};

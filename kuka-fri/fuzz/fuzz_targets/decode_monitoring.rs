@@ -1,7 +1,8 @@
 //! Untrusted controller bytes through the codec and the whole client session.
 #![no_main]
 
-use kuka_fri::{ClientSession, JointLimits, SafetyGuard, SessionConfig, WorkspaceBox};
+use b2b_robot::{JointLimits, WorkspaceBox};
+use kuka_fri::{ClientSession, SafetyGuard, SessionConfig};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -5,11 +5,12 @@
 
 use std::time::{Duration, Instant};
 
+use b2b_robot::{JointLimits, Joints, WorkspaceBox};
 use kuka_fri::codec;
 use kuka_fri::messages::MAX_DATAGRAM_SIZE;
 use kuka_fri::{
-    ClientSession, Event, JointLimits, Joints, Link, LinkConfig, SafetyGuard, SessionConfig,
-    SessionState, SimConfig, SimulatedController, WorkspaceBox,
+    ClientSession, Event, Link, LinkConfig, SafetyGuard, SessionConfig, SessionState, SimConfig,
+    SimulatedController,
 };
 
 /// A toy forward kinematics for tests (not the iiwa's): smooth, nonlinear, reaches ~1.2 m.

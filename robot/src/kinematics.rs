@@ -1,12 +1,13 @@
-//! LBR iiwa 7 R800 and iiwa 14 R820: DH models, limits, forward and inverse kinematics.
+//! Standard-DH chains: forward kinematics, the geometric Jacobian, and inverse
+//! kinematics for a 7-DOF arm. The iiwa's tables are in [`crate::catalogue`].
 //!
 //! **Own DH chain, not the `k` crate.** `k` 0.32 is built on nalgebra 0.30 (a second
 //! nalgebra in the build, converted through arrays at every call) and pulls in a URDF
-//! parser; what the simulator needs is small and specific: a standard-DH chain whose
-//! parameters can be *perturbed* (the robot error model of [`crate::robot_error`] gives
-//! the true robot slightly different DH parameters from the nominal ones the controller
-//! believes), a geometric Jacobian, and an IK that resolves the redundancy of a 7-DOF arm
-//! towards a chosen posture inside the joint limits. That is ~200 lines here.
+//! parser; what the project needs is small and specific: a standard-DH chain whose
+//! parameters can be *perturbed* (the simulator's robot error model gives the true robot
+//! slightly different DH parameters from the nominal ones the controller believes), a
+//! geometric Jacobian, and an IK that resolves the redundancy of a 7-DOF arm towards a
+//! chosen posture inside the joint limits. That is ~200 lines here.
 //!
 //! **Parameters** (shared/facts.md §2, verified against the `lbr_description` URDF):
 //! standard DH with `a = 0`, `α = [-π/2, π/2, π/2, -π/2, -π/2, π/2, 0]`,
@@ -23,34 +24,24 @@
 //! one seed is restarted from deterministic alternative seeds.
 
 use nalgebra::{
-    Isometry3, Matrix3, Matrix6, SMatrix, Translation3, UnitQuaternion, Vector3, Vector6,
+    Isometry3, Matrix3, Matrix6, Point3, SMatrix, Translation3, UnitQuaternion, Vector3, Vector6,
 };
 use serde::{Deserialize, Serialize};
 
-use crate::SimError;
+use crate::{IiwaModel, JointLimits, Joints, N_JOINTS, RobotError};
 
-/// Number of joints.
-pub const N_JOINTS: usize = 7;
-/// A joint configuration, radians.
-pub type Joints = [f64; N_JOINTS];
-type Jacobian = SMatrix<f64, 6, N_JOINTS>;
-
-/// The two arm models.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum IiwaModel {
-    /// LBR iiwa 7 R800.
-    #[serde(rename = "iiwa7")]
-    Iiwa7R800,
-    /// LBR iiwa 14 R820.
-    #[serde(rename = "iiwa14")]
-    Iiwa14R820,
-}
+/// The geometric Jacobian of a 7-joint chain: rows are the linear then the angular
+/// velocity of the flange in the base frame, columns the joints.
+pub type Jacobian = SMatrix<f64, 6, N_JOINTS>;
 
 /// One link's standard DH parameters: `Rz(theta + q) Tz(d) Tx(a) Rx(alpha)`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Dh {
+    /// Offset along the previous z axis, m.
     pub d: f64,
+    /// Length along the new x axis, m.
     pub a: f64,
+    /// Twist about the new x axis, rad.
     pub alpha: f64,
     /// Joint zero offset, added to the joint value.
     pub theta: f64,
@@ -69,77 +60,51 @@ impl Dh {
     }
 }
 
-/// Position and velocity limits of each joint.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct JointLimits {
-    /// Lower position limits, rad.
-    pub lower: Joints,
-    /// Upper position limits, rad.
-    pub upper: Joints,
-    /// Largest speed, rad/s.
-    pub velocity: Joints,
-}
-
-impl JointLimits {
-    /// Whether `q` lies inside the position limits.
-    pub fn contains(&self, q: &Joints) -> bool {
-        (0..N_JOINTS).all(|i| q[i] >= self.lower[i] && q[i] <= self.upper[i])
-    }
-
-    /// `q` clamped into the limits shrunk by `margin` on each side.
-    pub fn clamp(&self, q: &Joints, margin: f64) -> Joints {
-        std::array::from_fn(|i| q[i].clamp(self.lower[i] + margin, self.upper[i] - margin))
-    }
-}
-
-/// A 7-DOF serial arm in standard DH.
+/// A 7-DOF serial arm in standard DH. [`Arm::new`] gives a model's nominal arm; the
+/// fields are public so that an error model can perturb the table of a "true" arm.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Arm {
+    /// Which arm this is (the catalogue entry its table started from).
     pub model: IiwaModel,
+    /// The standard-DH table, base to flange.
     pub dh: [Dh; N_JOINTS],
+    /// The joint limits.
     pub limits: JointLimits,
 }
 
-fn deg(v: [f64; N_JOINTS]) -> Joints {
-    v.map(f64::to_radians)
-}
-
 impl Arm {
-    /// The nominal kinematics of a model (shared/facts.md §2).
+    /// The nominal kinematics and limits of a model ([`crate::catalogue`]).
     pub fn new(model: IiwaModel) -> Arm {
-        use std::f64::consts::FRAC_PI_2 as H;
-        let (d, velocity) = match model {
-            IiwaModel::Iiwa7R800 => (
-                [0.34, 0.0, 0.40, 0.0, 0.40, 0.0, 0.126],
-                deg([98.0, 98.0, 100.0, 130.0, 140.0, 180.0, 180.0]),
-            ),
-            IiwaModel::Iiwa14R820 => (
-                [0.36, 0.0, 0.42, 0.0, 0.40, 0.0, 0.126],
-                deg([85.0, 85.0, 100.0, 75.0, 130.0, 135.0, 135.0]),
-            ),
-        };
-        let alpha = [-H, H, H, -H, -H, H, 0.0];
-        let upper = deg([170.0, 120.0, 170.0, 120.0, 170.0, 120.0, 175.0]);
         Arm {
             model,
-            dh: std::array::from_fn(|i| Dh {
-                d: d[i],
-                a: 0.0,
-                alpha: alpha[i],
-                theta: 0.0,
-            }),
-            limits: JointLimits {
-                lower: upper.map(|u| -u),
-                upper,
-                velocity,
-            },
+            dh: model.dh(),
+            limits: model.limits(),
         }
     }
 
     /// A relaxed elbow-up posture with the flange pointing down in front of the base:
     /// the default preference of the IK's null-space term and its first seed.
     pub fn comfortable() -> Joints {
-        deg([0.0, 30.0, 0.0, -90.0, 0.0, 60.0, 0.0])
+        [0.0, 30.0, 0.0, -90.0, 0.0, 60.0, 0.0].map(f64::to_radians)
+    }
+
+    /// The shoulder centre (where axes 1 and 2 meet, `d1` above the base) in the base.
+    /// Meaningful for the iiwa's layout ([`crate::catalogue`]: `a = 0`, `d2 = 0`).
+    pub fn shoulder_in_base(&self) -> Point3<f64> {
+        Point3::new(0.0, 0.0, self.dh[0].d)
+    }
+
+    /// The wrist centre (where axes 5, 6 and 7 meet) of a flange pose: `d7` behind the
+    /// flange along its z axis.
+    pub fn wrist_centre_in_base(&self, base_from_flange: &Isometry3<f64>) -> Point3<f64> {
+        base_from_flange * Point3::new(0.0, 0.0, -self.dh[N_JOINTS - 1].d)
+    }
+
+    /// The longest possible shoulder-to-wrist distance, `|d3| + |d5|` (arm stretched):
+    /// a flange pose whose wrist centre is further from the shoulder is out of reach
+    /// whatever the joint angles.
+    pub fn max_shoulder_to_wrist_m(&self) -> f64 {
+        self.dh[2].d.abs() + self.dh[4].d.abs()
     }
 
     /// `base_from_flange` at `q`.
@@ -174,7 +139,7 @@ impl Arm {
         base_from_flange: &Isometry3<f64>,
         seed: &Joints,
         opts: &IkOptions,
-    ) -> Result<Joints, SimError> {
+    ) -> Result<Joints, RobotError> {
         let mut best: Option<(f64, Joints)> = None;
         for k in 0..=opts.restarts {
             let start = if k == 0 { *seed } else { self.restart_seed(k) };
@@ -190,7 +155,7 @@ impl Arm {
         let (pos, rot) = best
             .map(|(_, q)| pose_error_norms(&self.fk(&q), base_from_flange))
             .unwrap_or((f64::INFINITY, f64::INFINITY));
-        Err(SimError::Unreachable {
+        Err(RobotError::Unreachable {
             position_error_m: pos,
             rotation_error_rad: rot,
         })
@@ -202,7 +167,7 @@ impl Arm {
         const PRIMES: [f64; N_JOINTS] = [2.0, 3.0, 5.0, 7.0, 11.0, 13.0, 17.0];
         std::array::from_fn(|i| {
             let u = (k as f64 * PRIMES[i].sqrt()).fract();
-            let (lo, hi) = (self.limits.lower[i], self.limits.upper[i]);
+            let (lo, hi) = (self.limits.position_min[i], self.limits.position_max[i]);
             lo + (hi - lo) * (0.15 + 0.7 * u)
         })
     }
@@ -374,8 +339,8 @@ mod tests {
     }
 
     fn joints_in(arm: &Arm, shrink: f64) -> impl Strategy<Value = Joints> {
-        let lo = arm.limits.lower;
-        let hi = arm.limits.upper;
+        let lo = arm.limits.position_min;
+        let hi = arm.limits.position_max;
         proptest::array::uniform7(0.0..1.0f64).prop_map(move |u| {
             std::array::from_fn(|i| lo[i] * shrink + (hi[i] - lo[i]) * shrink * u[i])
         })
@@ -419,6 +384,33 @@ mod tests {
             let urdf = urdf_fk(model, &q);
             let (dp, dr) = pose_error_norms(&dh, &urdf);
             prop_assert!(dp < 1e-12 && dr < 1e-12, "{dp} m, {dr} rad");
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 100, ..ProptestConfig::default() })]
+
+        #[test]
+        fn wrist_and_shoulder_centres_are_where_the_axes_meet(
+            q in joints_in(&Arm::new(IiwaModel::Iiwa7R800), 1.0),
+            fourteen in any::<bool>(),
+        ) {
+            let model = if fourteen { IiwaModel::Iiwa14R820 } else { IiwaModel::Iiwa7R800 };
+            let arm = Arm::new(model);
+            let frames = arm.frames(&q);
+            // Axes 1 and 2 meet at the origins of frames 1 and 2; axes 5, 6 and 7 at
+            // those of frames 5 and 6.
+            for f in [1, 2] {
+                let d = (frames[f].translation.vector - arm.shoulder_in_base().coords).norm();
+                prop_assert!(d < 1e-12, "frame {f}: {d}");
+            }
+            let wrist = arm.wrist_centre_in_base(&arm.fk(&q));
+            for f in [5, 6] {
+                let d = (frames[f].translation.vector - wrist.coords).norm();
+                prop_assert!(d < 1e-12, "frame {f}: {d}");
+            }
+            let reach = (wrist - arm.shoulder_in_base()).norm();
+            prop_assert!(reach <= arm.max_shoulder_to_wrist_m() + 1e-12, "{reach}");
         }
     }
 
@@ -469,7 +461,7 @@ mod tests {
         };
         assert!(matches!(
             arm.ik(&far, &Arm::comfortable(), &opts),
-            Err(SimError::Unreachable { .. })
+            Err(RobotError::Unreachable { .. })
         ));
     }
 }
