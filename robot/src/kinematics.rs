@@ -48,8 +48,25 @@ pub struct Dh {
 }
 
 impl Dh {
-    /// `frame_{i-1} from frame_i` at joint value `q`.
+    /// `frame_{i-1} from frame_i` at joint value `q`. A non-finite joint value
+    /// (or table entry) gives a pose that is NaN throughout, at once: the
+    /// rotation-matrix-to-quaternion step iterates until it converges, which it
+    /// never does on NaN.
     pub fn transform(&self, q: f64) -> Isometry3<f64> {
+        if ![q, self.theta, self.alpha, self.a, self.d]
+            .iter()
+            .all(|v| v.is_finite())
+        {
+            return Isometry3::from_parts(
+                Translation3::new(f64::NAN, f64::NAN, f64::NAN),
+                UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(
+                    f64::NAN,
+                    f64::NAN,
+                    f64::NAN,
+                    f64::NAN,
+                )),
+            );
+        }
         let (st, ct) = (self.theta + q).sin_cos();
         let (sa, ca) = self.alpha.sin_cos();
         let r = Matrix3::new(ct, -st * ca, st * sa, st, ct * ca, -ct * sa, 0.0, sa, ca);
@@ -296,6 +313,23 @@ impl Default for IkOptions {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// Forward kinematics of a non-finite joint vector returns (a NaN pose)
+    /// instead of iterating forever; finite joints are untouched.
+    #[test]
+    fn non_finite_joints_give_a_nan_pose_at_once() {
+        let arm = Arm::new(IiwaModel::Iiwa14R820);
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let mut q = Arm::comfortable();
+            q[3] = bad;
+            let pose = arm.fk(&q);
+            assert!(pose.translation.vector.iter().all(|v| v.is_nan()));
+            assert!(pose.rotation.coords.iter().all(|v| v.is_nan()));
+            assert!(arm.frames(&q)[7].translation.vector.x.is_nan());
+        }
+        let q = Arm::comfortable();
+        assert!(arm.fk(&q).translation.vector.iter().all(|v| v.is_finite()));
+    }
 
     /// The `lbr_description` URDF chain (shared/facts.md §2.1), written independently of
     /// the DH table: joint origins (rpy = 0) and axes, then the fixed flange joint.

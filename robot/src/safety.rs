@@ -69,9 +69,8 @@ where
     }
 }
 
-/// Non-finite joints give a NaN position (outside every box) rather than reaching
-/// [`Arm::fk`], whose rotation-matrix-to-quaternion step iterates until convergence and
-/// never ends on NaN.
+/// Non-finite joints give a NaN position, outside every box (as [`Arm::fk`] does
+/// too, without computing the chain).
 impl ForwardKinematics for Arm {
     fn flange_position(&self, q: &Joints) -> [f64; 3] {
         if !q.iter().all(|v| v.is_finite()) {
