@@ -310,25 +310,7 @@ mod tests {
         assert_eq!(at.to_string(), "/d/a.csv: line 1");
     }
 
-    /// The message leaves its source out: the source's text is not in the top message
-    /// and appears exactly once in the chain "a: b: c" that binaries print.
-    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
-        let cause = e
-            .source()
-            .expect("the error keeps its cause as source")
-            .to_string();
-        assert!(
-            !e.to_string().contains(&cause),
-            "{e} repeats its source {cause}"
-        );
-        let mut chain = e.to_string();
-        let mut next = e.source();
-        while let Some(c) = next {
-            chain = format!("{chain}: {c}");
-            next = c.source();
-        }
-        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
-    }
+    use b2b_errors::assert_cause_once;
 
     #[test]
     fn every_wrapped_error_prints_its_cause_once() {

@@ -259,18 +259,8 @@ pub enum PipelineError {
 }
 
 /// An error and its causes on one line, "a: b: c", for a reason kept as text (a
-/// rejected capture's reason, a status message). Every message of this workspace
-/// leaves its source out, so each cause appears once.
-pub fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
-        cause = c.source();
-    }
-    text
-}
+/// rejected capture's reason, a status message).
+pub use b2b_errors::chain as error_chain;
 
 fn unknown_robot(ds: &Dataset, robot: &str) -> PipelineError {
     PipelineError::UnknownRobot {

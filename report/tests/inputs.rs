@@ -8,16 +8,7 @@ use b2b_protocol::{CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResul
 use b2b_report::{CaptureDetail, ReportError, ReportInputs, TouchDetail, write_report};
 use nalgebra::{Isometry3, Vector3};
 
-/// The error and its causes, "a: b: c", as the binaries print it.
-fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut next = e.source();
-    while let Some(c) = next {
-        text = format!("{text}: {c}");
-        next = c.source();
-    }
-    text
-}
+use b2b_errors::chain;
 
 fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -193,7 +193,6 @@ impl Store {
     /// mean of every distinct corner seen, with a warning.
     pub fn target_centre(&self, robots: &[&str]) -> anyhow::Result<Point3<f64>> {
         let mut reported: Option<(String, u64, [f64; 3])> = None;
-        let mut seen: Vec<[f64; 3]> = Vec::new();
         let mut missing = 0usize;
         for robot in robots {
             let Some(caps) = self.captures.get(*robot) else {
@@ -216,11 +215,6 @@ impl Store {
                         );
                     }
                 }
-                for p in &o.target_points {
-                    if !seen.contains(p) {
-                        seen.push(*p);
-                    }
-                }
             }
         }
         if let Some((_, _, c)) = reported {
@@ -230,6 +224,20 @@ impl Store {
                 );
             }
             return Ok(Point3::from(c));
+        }
+        // Only agents that report no centre at all get here: the corners seen.
+        let mut seen: Vec<[f64; 3]> = Vec::new();
+        for robot in robots {
+            let caps = self
+                .captures
+                .get(*robot)
+                .into_iter()
+                .flat_map(|c| c.values());
+            for p in caps.flat_map(|c| c.observation.iter().flat_map(|o| &o.target_points)) {
+                if !seen.contains(p) {
+                    seen.push(*p);
+                }
+            }
         }
         anyhow::ensure!(!seen.is_empty(), "no usable capture from {robots:?}");
         tracing::warn!(

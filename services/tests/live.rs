@@ -10,7 +10,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use b2b_protocol::CalibrationResult;
-use common::{Net, net};
+use common::{Net, assert_same, net, offline_result_of};
 
 fn dataset() -> PathBuf {
     dataset_named("sim-checkerboard-2x12")
@@ -88,33 +88,6 @@ fn wait(child: &mut Child, what: &str, limit: Duration) {
 
 fn offline_result(dir: &Path) -> CalibrationResult {
     offline_result_of(dir, &dataset(), "board")
-}
-
-fn offline_result_of(dir: &Path, dataset: &Path, method: &str) -> CalibrationResult {
-    let out = dir.join("OFFLINE.json");
-    let status = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["calibrate", "--method", method, "--dataset"])
-        .arg(dataset)
-        .arg("--out")
-        .arg(&out)
-        .stdout(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success());
-    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
-}
-
-fn assert_same(live: &CalibrationResult, offline: &CalibrationResult) {
-    for i in 0..3 {
-        assert!(
-            (live.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9,
-            "{live:?} vs {offline:?}"
-        );
-    }
-    for i in 0..4 {
-        assert!((live.base1_from_base2.q[i] - offline.base1_from_base2.q[i]).abs() < 1e-9);
-    }
-    assert_eq!(live.captures.used, offline.captures.used);
 }
 
 fn read_result(net: &Net) -> CalibrationResult {

@@ -4,14 +4,14 @@
 //! `calibrate`, as it does over zenoh between processes (`tests/live.rs`): the
 //! loops depend on the [`Bus`] trait, not on the transport.
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use b2b_calib::refine::RefineOptions;
-use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{COORDINATOR, result_key};
 use b2b_services::agent::{AgentOptions, ReplaySource, run_agent_on};
 use b2b_services::bus::{Bus, MemoryBus};
@@ -19,20 +19,6 @@ use b2b_services::coordinator::{RunOptions, run_on};
 
 fn dataset() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
-}
-
-fn offline_result(dir: &Path) -> CalibrationResult {
-    let out = dir.join("OFFLINE.json");
-    let status = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["calibrate", "--method", "board", "--dataset"])
-        .arg(dataset())
-        .arg("--out")
-        .arg(&out)
-        .stdout(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success());
-    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
 }
 
 #[test]
@@ -95,17 +81,8 @@ fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
     });
     let (result, counters) = coordinator;
     assert_eq!(counters.rejected, 0);
-    let offline = offline_result(dir.path());
-    for i in 0..3 {
-        assert!(
-            (result.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9,
-            "{result:?} vs {offline:?}"
-        );
-    }
-    for i in 0..4 {
-        assert!((result.base1_from_base2.q[i] - offline.base1_from_base2.q[i]).abs() < 1e-9);
-    }
-    assert_eq!(result.captures.used, offline.captures.used);
+    let offline = common::offline_result_of(dir.path(), &dataset(), "board");
+    common::assert_same(&result, &offline);
     // Every agent received the coordinator's result, as published.
     for got in agents {
         assert_eq!(got.as_ref(), Some(&result));

@@ -142,42 +142,13 @@ impl<T> CvContext<T> for opencv::Result<T> {
     }
 }
 
-/// The error and its causes on one line, "a: b: c": for a reason kept as text.
-/// Each message leaves its source out, so the chain prints every cause once.
-pub(crate) fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
-        cause = c.source();
-    }
-    text
-}
+pub(crate) use b2b_errors::chain;
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// The message leaves its source out: the source's text is not in the top message
-    /// and appears exactly once in the chain "a: b: c" that binaries print.
-    fn assert_cause_once(e: &(dyn std::error::Error + 'static)) {
-        let cause = e
-            .source()
-            .expect("the error keeps its cause as source")
-            .to_string();
-        assert!(
-            !e.to_string().contains(&cause),
-            "{e} repeats its source {cause}"
-        );
-        let mut chain = e.to_string();
-        let mut next = e.source();
-        while let Some(c) = next {
-            chain = format!("{chain}: {c}");
-            next = c.source();
-        }
-        assert_eq!(chain.matches(&cause).count(), 1, "{chain}");
-    }
+    use b2b_errors::assert_cause_once;
 
     #[test]
     fn every_wrapped_error_prints_its_cause_once() {

@@ -105,17 +105,7 @@ impl Fixture {
     }
 }
 
-/// The error and its causes, "a: b: c", as the binaries print it: each message
-/// leaves its source out, so the whole message is the chain.
-pub fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut next = e.source();
-    while let Some(c) = next {
-        text = format!("{text}: {c}");
-        next = c.source();
-    }
-    text
-}
+pub use b2b_errors::chain;
 
 pub fn assert_message(e: &DatasetError, file: &Path, parts: &[&str]) {
     let msg = chain(e);

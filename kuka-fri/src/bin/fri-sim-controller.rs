@@ -14,6 +14,7 @@
 //! line is printed: `sim-summary key=value ...`. The exit code is 1 if any command violated
 //! the limits or any datagram was malformed.
 
+use b2b_errors::chain;
 use std::net::{SocketAddr, UdpSocket};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -190,17 +191,4 @@ fn main() -> ExitCode {
             ExitCode::from(2)
         }
     }
-}
-
-/// The error and its causes, "a: b: c": each message leaves its source out, so
-/// every cause is printed once.
-fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
-        cause = c.source();
-    }
-    text
 }

@@ -116,3 +116,40 @@ pub fn truth_error(
     let d = truth.inverse() * est;
     (d.translation.vector.norm(), d.rotation.angle())
 }
+
+/// `coordinator calibrate --method METHOD` on a dataset: the offline result the
+/// live runs must equal.
+pub fn offline_result_of(
+    dir: &std::path::Path,
+    dataset: &std::path::Path,
+    method: &str,
+) -> b2b_protocol::CalibrationResult {
+    let out = dir.join("OFFLINE.json");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["calibrate", "--method", method, "--dataset"])
+        .arg(dataset)
+        .arg("--out")
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+}
+
+/// The same pose to 1e-9 and the same captures used.
+pub fn assert_same(
+    live: &b2b_protocol::CalibrationResult,
+    offline: &b2b_protocol::CalibrationResult,
+) {
+    for i in 0..3 {
+        assert!(
+            (live.base1_from_base2.t[i] - offline.base1_from_base2.t[i]).abs() < 1e-9,
+            "{live:?} vs {offline:?}"
+        );
+    }
+    for i in 0..4 {
+        assert!((live.base1_from_base2.q[i] - offline.base1_from_base2.q[i]).abs() < 1e-9);
+    }
+    assert_eq!(live.captures.used, offline.captures.used);
+}
