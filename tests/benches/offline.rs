@@ -82,10 +82,10 @@ const CASES: [Case; 2] = [
     // 7x5 squares, partly occluded, 2 x 10 captures. OpenCV's pipeline lands
     // ~5 mm / 0.46 deg from the truth here (4.6's ChArUco corners are ~0.7 px off,
     // see vision/benches/detect.rs): a poorer result, not a failure. README: ours
-    // 0.27 mm / 0.022 deg, OpenCV 5.0 mm / 0.46 deg.
+    // 0.38 mm / 0.013 deg, OpenCV 5.0 mm / 0.46 deg.
     Case {
         name: "sim-charuco-occluded-2x10",
-        ours_limit: (0.41e-3, 0.033),
+        ours_limit: (0.57e-3, 0.02),
         opencv_limit: (7.5e-3, 0.69),
     },
 ];
