@@ -392,12 +392,19 @@ pub enum TargetSpec {
 impl TargetSpec {
     /// The target of a dataset; a multimarker file is read from the dataset folder.
     pub fn from_dataset(ds: &Dataset) -> Result<Self, PipelineError> {
-        let manifest = ds.root.join("dataset.json");
+        Self::from_manifest(&ds.manifest.target, &ds.root.join("dataset.json"))
+    }
+
+    /// A target as `dataset.json` describes it (the same JSON in a live agent's
+    /// setup file), read from `manifest`: a multimarker file's relative path is
+    /// taken from the folder of `manifest`, which errors also name.
+    pub fn from_manifest(target: &Target, manifest: &Path) -> Result<Self, PipelineError> {
+        let root = manifest.parent().unwrap_or(Path::new("."));
         let bad = |source: VisionError| PipelineError::InvalidTarget {
-            manifest: manifest.clone(),
+            manifest: manifest.to_owned(),
             source,
         };
-        let spec = match &ds.manifest.target {
+        let spec = match target {
             Target::Checkerboard {
                 inner_corners,
                 square_m,
@@ -447,7 +454,7 @@ impl TargetSpec {
                 let path = if config.is_absolute() {
                     config.clone()
                 } else {
-                    ds.root.join(config)
+                    root.join(config)
                 };
                 let config = MultimarkerConfig::load(&path)?;
                 config.check_dictionary(&dictionary)?;
@@ -470,6 +477,26 @@ impl TargetSpec {
             TargetSpec::Multimarker { config, .. } => {
                 config.markers.iter().flat_map(|m| m.corners()).collect()
             }
+        }
+    }
+
+    /// The direction (target frame, unit) from the target towards where it is seen
+    /// from: a board's printed side faces -z of its frame (z points into it); a
+    /// multimarker set is seen along the mean of its markers' outward normals (+z
+    /// of each marker, ARToolKit's convention): +z of a planar sheet, the middle of
+    /// a three-face corner's view.
+    pub fn view_axis(&self) -> nalgebra::Vector3<f64> {
+        let minus_z = -nalgebra::Vector3::z();
+        match self {
+            TargetSpec::Multimarker { config, .. } => {
+                let sum: nalgebra::Vector3<f64> = config
+                    .markers
+                    .iter()
+                    .map(|m| m.set_from_marker.rotation * nalgebra::Vector3::z())
+                    .sum();
+                sum.try_normalize(1e-9).unwrap_or(nalgebra::Vector3::z())
+            }
+            _ => minus_z,
         }
     }
 
@@ -574,7 +601,19 @@ impl TargetSpec {
         img: &b2b_vision::GrayImage,
         camera: &CameraModel,
     ) -> Result<BoardDetection, VisionError> {
+        self.detect_corners_impl(img, camera, false)
+    }
+
+    fn detect_corners_impl(
+        &self,
+        img: &b2b_vision::GrayImage,
+        camera: &CameraModel,
+        up_to_symmetry: bool,
+    ) -> Result<BoardDetection, VisionError> {
         match self {
+            TargetSpec::Checkerboard(s) if up_to_symmetry => {
+                b2b_vision::detect_checkerboard_up_to_symmetry(img, s).map(|(det, _)| det)
+            }
             TargetSpec::Checkerboard(s) => b2b_vision::detect_checkerboard(img, s),
             TargetSpec::Charuco(s) => b2b_vision::detect_charuco(img, s, camera),
             TargetSpec::ArucoGrid(s) => b2b_vision::detect_aruco_grid(img, s),
@@ -963,7 +1002,9 @@ fn observe_uncalibrated(
             ));
             continue;
         }
-        match target.detect_corners(&img, &g) {
+        // A symmetric board's labelling does not matter to the intrinsics (each
+        // view has its own pose); it is chosen from the robot's motion below.
+        match target.detect_corners_impl(&img, &g, true) {
             Ok(det) => found.push((cap, redetect.then_some(img), det)),
             Err(e) => reject(error_chain(&e)),
         }
@@ -1056,6 +1097,16 @@ fn observe_uncalibrated(
                 });
             }
         }
+    }
+    let symmetry = target.symmetry();
+    if !symmetry.is_trivial() {
+        observations = resolve_symmetric_labelling(
+            robot,
+            &target.describe(),
+            &symmetry,
+            observations,
+            &mut rejected,
+        )?;
     }
     rejected.sort_by_key(|r| r.row);
     Ok(RobotObservations {

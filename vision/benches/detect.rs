@@ -319,5 +319,62 @@ fn bench_markers(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench, bench_charuco, bench_markers);
+/// A missed view: the same frame with a band over most of the board (an occluder,
+/// a view that turned away), so no detector can find it. What a failure costs
+/// matters as much as a success: without `CALIB_CB_FAST_CHECK`, OpenCV's classic
+/// detector tried every dilation and threshold for 30 s on such a 1280x720 frame
+/// (a rendered, board-edge-on view), 27 ms with it. The peer is OpenCV's classic
+/// detector with the same flags as ours, then the sector-based one.
+fn bench_missed(c: &mut Criterion) {
+    let board = frame();
+    let (w, h) = (board.width() as usize, board.height() as usize);
+    let mut pixels = board.pixels().to_vec();
+    for (k, p) in pixels.iter_mut().enumerate() {
+        let (x, y) = (k % w, k / w);
+        // A band across the board's middle (the board spans about x 400-900).
+        if (250..520).contains(&y) && x > 300 {
+            *p = 70;
+        }
+    }
+    let img = b2b_vision::GrayImage::from_raw(w as u32, h as u32, &pixels).unwrap();
+    let spec = CheckerboardSpec {
+        cols: 9,
+        rows: 6,
+        square_m: 0.03,
+    };
+    let mut group = c.benchmark_group("detect_1280x720_9x6_missed");
+    group.sample_size(10);
+    group.bench_function("b2b_vision::detect_checkerboard (fails)", |b| {
+        b.iter(|| assert!(detect_checkerboard(black_box(&img), &spec).is_err()))
+    });
+    group.bench_function(
+        "opencv findChessboardCorners (fast check) + findChessboardCornersSB (fail)",
+        |b| {
+            b.iter(|| {
+                let mut corners = Vector::<Point2f>::new();
+                let flags = calib3d::CALIB_CB_ADAPTIVE_THRESH
+                    | calib3d::CALIB_CB_NORMALIZE_IMAGE
+                    | calib3d::CALIB_CB_FAST_CHECK;
+                let classic = calib3d::find_chessboard_corners(
+                    img.mat(),
+                    Size::new(9, 6),
+                    &mut corners,
+                    flags,
+                )
+                .unwrap();
+                let sb = calib3d::find_chessboard_corners_sb(
+                    img.mat(),
+                    Size::new(9, 6),
+                    &mut corners,
+                    calib3d::CALIB_CB_NORMALIZE_IMAGE,
+                )
+                .unwrap();
+                assert!(!classic && !sb);
+            })
+        },
+    );
+    group.finish();
+}
+
+criterion_group!(benches, bench, bench_charuco, bench_markers, bench_missed);
 criterion_main!(benches);

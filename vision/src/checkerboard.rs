@@ -172,8 +172,14 @@ pub enum CornerMethod {
 /// and finds boards under strong perspective; the sector-based one finds boards the
 /// classic one misses in uneven light; `EXHAUSTIVE` is the slow last resort.
 pub const DEFAULT_METHODS: [CornerMethod; 3] = [
+    // FAST_CHECK: without it, findChessboardCorners on an image with no board
+    // (an occluded or missed view) tries every dilation and threshold: 30 s on
+    // one 1280x720 frame here, against 27 ms with it. A board it wrongly rejects
+    // still gets the sector-based detectors below.
     CornerMethod::Classic {
-        flags: calib3d::CALIB_CB_ADAPTIVE_THRESH | calib3d::CALIB_CB_NORMALIZE_IMAGE,
+        flags: calib3d::CALIB_CB_ADAPTIVE_THRESH
+            | calib3d::CALIB_CB_NORMALIZE_IMAGE
+            | calib3d::CALIB_CB_FAST_CHECK,
         half_window: None,
     },
     CornerMethod::SectorBased {
