@@ -128,7 +128,8 @@ pub struct SimStats {
     pub late_replies: u64,
     /// Longest delay of a send past its due time.
     pub max_send_lateness: Duration,
-    /// Longest time from sending a message to receiving the reply that reflects it.
+    /// Longest time from sending a message to taking in the reply that reflects it (a
+    /// cyclic driver takes replies in at its next cycle, so this is then about a period).
     pub max_reply_latency: Duration,
 }
 
@@ -542,8 +543,10 @@ impl SimulatedController {
     }
 
     /// If a monitoring message is due at `now`, advances the simulation one cycle, writes
-    /// the message into `buf` and returns its length. After a stall of more than five
-    /// periods, missed cycles are skipped rather than sent in a burst.
+    /// the message into `buf` and returns its length. A cycle that runs a period or more
+    /// late skips the cycles it missed and starts a new period at `now`: like a real
+    /// controller, it never sends two messages less than a period apart, which would leave
+    /// the client no time to answer the first.
     pub fn poll_transmit(&mut self, now: Instant, buf: &mut [u8]) -> Option<usize> {
         if now < self.next_send {
             return None;
@@ -551,7 +554,7 @@ impl SimulatedController {
         let period = self.send_period();
         let due = self.next_send;
         self.next_send += period;
-        if now > self.next_send + period * 5 {
+        if now >= self.next_send {
             self.next_send = now + period;
         }
         self.audit_cycle(now, due);
