@@ -114,6 +114,9 @@ pub enum FriError {
     /// A motion was requested while another one is running.
     #[error("a motion is already in progress")]
     MotionInProgress,
+    /// A motion planned from a command origin that has moved since (plan it again).
+    #[error("the command origin moved while the motion was being planned")]
+    MotionOriginMoved,
     /// The running motion was stopped before reaching its target.
     #[error("motion aborted: {reason}")]
     MotionAborted {

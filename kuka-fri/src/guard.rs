@@ -57,6 +57,12 @@ impl SafetyGuard {
         Ok(self)
     }
 
+    /// Whether `other` applies the same envelope with the same kinematics (a clone of this
+    /// guard, or this guard itself).
+    pub fn is_same(&self, other: &SafetyGuard) -> bool {
+        self.envelope == other.envelope && Arc::ptr_eq(&self.fk, &other.fk)
+    }
+
     /// The predicate this guard applies.
     pub fn envelope(&self) -> &SafetyEnvelope {
         &self.envelope

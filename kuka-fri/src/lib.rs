@@ -13,9 +13,12 @@
 //! | [`joints`] | controller-stamped joint states, stillness detection | none |
 //! | [`session`] | [`ClientSession`], the sans-I/O client state machine | none (fed bytes and instants) |
 //! | [`sim`] | [`SimulatedController`] (robot side) and a lossy [`sim::Link`] | none |
-//! | [`udp`] | [`FriClient`]: a thread + UDP socket driving the session | socket, clock |
+//! | [`udp`] | [`FriClient`]: a cycle thread + UDP socket driving the session | socket, clock |
+//! | [`server`] | [`SimServer`]: a cycle thread + UDP socket serving the simulated controller | socket, clock |
+//! | [`realtime`] | SCHED_FIFO for the cycle threads, where permitted | scheduler |
 //!
-//! The binary `fri-sim-controller` serves the simulated controller over UDP.
+//! The binary `fri-sim-controller` serves the simulated controller over UDP through a lossy
+//! link.
 //!
 //! ```
 //! use b2b_robot::{JointLimits, WorkspaceBox};
@@ -35,6 +38,8 @@ pub mod error;
 pub mod guard;
 pub mod joints;
 pub mod messages;
+pub mod realtime;
+pub mod server;
 pub mod session;
 pub mod sim;
 pub mod trajectory;
@@ -44,7 +49,11 @@ pub use error::{FriError, Result};
 pub use guard::SafetyGuard;
 pub use joints::{ControllerTime, JointHistory, JointState};
 pub use messages::{ConnectionQuality, SessionState};
-pub use session::{ClientSession, Event, MonitorSnapshot, SessionConfig, SessionStats};
+pub use realtime::{CycleScheduling, DEFAULT_CYCLE_PRIORITY};
+pub use server::{SimServer, SimServerConfig, SimSnapshot};
+pub use session::{
+    ClientSession, Event, MonitorSnapshot, PlannedMotion, SessionConfig, SessionStats,
+};
 pub use sim::{Link, LinkConfig, SimConfig, SimStats, SimulatedController};
 pub use trajectory::Trajectory;
 pub use udp::{FriClient, FriClientConfig};

@@ -244,6 +244,46 @@ pub struct SessionStats {
     pub restarts: u64,
 }
 
+/// A motion planned from a command origin, its target and whole path checked by a guard:
+/// ready for [`ClientSession::begin_motion`].
+///
+/// Planning checks the path pose by pose (milliseconds for a long move), so a driver plans
+/// outside its cycle and hands the plan over; the session begins it only from the same
+/// origin and with the same guard, and still checks every command it sends.
+#[derive(Clone, Debug)]
+pub struct PlannedMotion {
+    origin: Joints,
+    traj: Trajectory,
+    guard: SafetyGuard,
+}
+
+impl PlannedMotion {
+    /// Plans a rest-to-rest motion from `origin` to `target` within `guard`'s limits and
+    /// checks the target and the path (a pose every milliradian) against it.
+    pub fn plan(guard: &SafetyGuard, origin: Joints, target: Joints) -> Result<Self> {
+        guard.check_pose(&target)?;
+        let traj = Trajectory::plan(&origin, &target, guard.limits())?;
+        for q in traj.path_points(PATH_CHECK_STEP) {
+            guard.check_pose(&q)?;
+        }
+        Ok(Self {
+            origin,
+            traj,
+            guard: guard.clone(),
+        })
+    }
+
+    /// Where the motion starts.
+    pub fn origin(&self) -> Joints {
+        self.origin
+    }
+
+    /// The planned duration.
+    pub fn duration(&self) -> Duration {
+        Duration::from_secs_f64(self.traj.duration().min(1e6))
+    }
+}
+
 #[derive(Clone, Debug)]
 enum CommandSource {
     /// Repeat the last command (or the interpolator position when there is none).
@@ -500,7 +540,8 @@ impl ClientSession {
     }
 
     /// The pose commanding continues from: the last command, else the interpolator position.
-    fn command_origin(&self) -> Option<Joints> {
+    /// A motion planned now starts here.
+    pub fn command_origin(&self) -> Option<Joints> {
         self.last_command.map(|(q, _)| q).or_else(|| {
             self.latest
                 .and_then(|s| s.ipo.or(s.commanded).or(s.measured))
@@ -511,27 +552,54 @@ impl ClientSession {
     ///
     /// The target and the whole path are checked against the guard first. Returns the motion
     /// identifier (reported in [`Event::MotionFinished`] / [`Event::MotionAborted`]) and the
-    /// planned duration.
+    /// planned duration. Equivalent to [`PlannedMotion::plan`] from
+    /// [`command_origin`](Self::command_origin) followed by
+    /// [`begin_motion`](Self::begin_motion).
     pub fn start_motion(&mut self, target: Joints) -> Result<(u64, Duration)> {
+        let origin = self.motion_origin()?;
+        let motion = PlannedMotion::plan(&self.guard, origin, target)?;
+        self.begin_motion(motion)
+    }
+
+    /// Starts a motion planned with [`PlannedMotion::plan`] (COMMANDING_ACTIVE only).
+    ///
+    /// Cheap, unlike planning: a driver plans away from its cycle and begins here. Fails if
+    /// the motion was planned from another origin than [`command_origin`](Self::command_origin)
+    /// ([`FriError::MotionOriginMoved`]: plan again) or checked by another guard than this
+    /// session's.
+    pub fn begin_motion(&mut self, motion: PlannedMotion) -> Result<(u64, Duration)> {
+        let origin = self.motion_origin()?;
+        if !motion.guard.is_same(&self.guard) {
+            return Err(FriError::InvalidValue {
+                what: "planned motion",
+                value: "checked by another safety guard than the session's".into(),
+            });
+        }
+        if motion.origin != origin {
+            return Err(FriError::MotionOriginMoved);
+        }
+        let id = self.next_motion_id;
+        self.next_motion_id += 1;
+        let duration = motion.duration();
+        let t0_seq = self.last_command.map(|(_, seq)| seq);
+        self.command = CommandSource::Motion {
+            id,
+            traj: motion.traj,
+            t0_seq,
+        };
+        Ok((id, duration))
+    }
+
+    /// Where a new motion would start, if one may start now.
+    fn motion_origin(&self) -> Result<Joints> {
         self.require_commanding()?;
         if self.motion_in_progress() {
             return Err(FriError::MotionInProgress);
         }
-        self.guard.check_pose(&target)?;
-        let start = self.command_origin().ok_or(FriError::MissingField {
+        self.command_origin().ok_or(FriError::MissingField {
             message: MONITORING,
             field: "ipoData.jointPosition",
-        })?;
-        let traj = Trajectory::plan(&start, &target, self.guard.limits())?;
-        for q in traj.path_points(PATH_CHECK_STEP) {
-            self.guard.check_pose(&q)?;
-        }
-        let id = self.next_motion_id;
-        self.next_motion_id += 1;
-        let duration = Duration::from_secs_f64(traj.duration().min(1e6));
-        let t0_seq = self.last_command.map(|(_, seq)| seq);
-        self.command = CommandSource::Motion { id, traj, t0_seq };
-        Ok((id, duration))
+        })
     }
 
     /// Brakes the running motion along its path at the planned deceleration.

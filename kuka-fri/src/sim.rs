@@ -114,6 +114,23 @@ pub struct SimStats {
     pub aborted: u64,
     /// Replies whose reflected sequence counter was never sent.
     pub bad_reflections: u64,
+    /// Cycles (outside IDLE) that closed with no reply for the last `receive_multiplier`
+    /// cycles: a reply the controller did not get in time, late or lost. These are the
+    /// zeros of the connection-quality window; a real controller counts them as missing.
+    pub missed_replies: u64,
+    /// Of [`missed_replies`](Self::missed_replies), those that followed a late send of the
+    /// controller's own, which left the client less than half a period to answer.
+    pub missed_after_late_send: u64,
+    /// Messages sent more than half a period after they were due (the controller's own
+    /// cycle ran late).
+    pub late_sends: u64,
+    /// Replies that arrived after `receive_multiplier` further messages had been sent.
+    pub late_replies: u64,
+    /// Longest delay of a send past its due time.
+    pub max_send_lateness: Duration,
+    /// Longest time from sending a message to taking in the reply that reflects it (a
+    /// cyclic driver takes replies in at its next cycle, so this is then about a period).
+    pub max_reply_latency: Duration,
 }
 
 /// The robot side of FRI (sans-I/O).
@@ -138,8 +155,17 @@ pub struct SimulatedController {
     echo_ok_cycles: u32,
     echo_ok_this_cycle: bool,
     commanding_requested: bool,
+    /// Cycles since the last one in which a reply arrived.
+    silent_cycles: u32,
+    /// Whether the newest message was sent late.
+    last_send_late: bool,
+    /// Send instants of the newest messages, indexed by sequence counter.
+    sent_at: [Option<Instant>; SENT_AT_SLOTS],
     stats: SimStats,
 }
+
+/// Messages whose send instant is kept to measure reply latency.
+const SENT_AT_SLOTS: usize = 16;
 
 /// Largest backward step of the client's sequence counter treated as reordering.
 const REORDER_WINDOW: u32 = 64;
@@ -197,6 +223,9 @@ impl SimulatedController {
             echo_ok_cycles: 0,
             echo_ok_this_cycle: false,
             commanding_requested: false,
+            silent_cycles: 0,
+            last_send_late: false,
+            sent_at: [None; SENT_AT_SLOTS],
             stats: SimStats::default(),
             cfg,
         })
@@ -287,8 +316,8 @@ impl SimulatedController {
         self.next_send
     }
 
-    /// Handles a command datagram from the client.
-    pub fn handle_datagram(&mut self, _now: Instant, bytes: &[u8]) -> Result<()> {
+    /// Handles a command datagram from the client, received at `now`.
+    pub fn handle_datagram(&mut self, now: Instant, bytes: &[u8]) -> Result<()> {
         let (header, msg) = match codec::decode_command_with_header(bytes) {
             Ok(v) => v,
             Err(e) => {
@@ -309,6 +338,7 @@ impl SimulatedController {
             self.stats.bad_reflections += 1;
         }
         self.stats.commands += 1;
+        self.audit_reply(now, header.reflected_sequence_counter);
         if self.state == SessionState::Idle {
             return Ok(());
         }
@@ -357,6 +387,51 @@ impl SimulatedController {
             _ => {}
         }
         Ok(())
+    }
+
+    /// Reply latency and lateness of a reply reflecting message `reflected`.
+    fn audit_reply(&mut self, now: Instant, reflected: u32) {
+        // `self.seq` is the next message's counter: messages up to `self.seq - 1` are out.
+        let behind = self.seq.wrapping_sub(reflected);
+        if behind == 0 || behind > u32::MAX / 2 {
+            return; // Reflects a message not sent yet (counted as a bad reflection).
+        }
+        if behind > self.cfg.receive_multiplier {
+            self.stats.late_replies += 1;
+        }
+        if (behind as usize) <= SENT_AT_SLOTS
+            && let Some(sent) = self.sent_at[reflected as usize % SENT_AT_SLOTS]
+        {
+            let latency = now.saturating_duration_since(sent);
+            self.stats.max_reply_latency = self.stats.max_reply_latency.max(latency);
+        }
+    }
+
+    /// Counts a missed reply when `receive_multiplier` cycles closed without one, and the
+    /// lateness of the send at `now` of a message due at `due`.
+    fn audit_cycle(&mut self, now: Instant, due: Instant) {
+        // Before the first message nothing was owed.
+        if self.state != SessionState::Idle && self.stats.sent > 0 {
+            if self.replies_this_cycle == 0 {
+                self.silent_cycles += 1;
+                if self.silent_cycles >= self.cfg.receive_multiplier {
+                    self.silent_cycles = 0;
+                    self.stats.missed_replies += 1;
+                    if self.last_send_late {
+                        self.stats.missed_after_late_send += 1;
+                    }
+                }
+            } else {
+                self.silent_cycles = 0;
+            }
+        }
+        let lateness = now.saturating_duration_since(due);
+        self.last_send_late = lateness > self.send_period() / 2;
+        if self.last_send_late {
+            self.stats.late_sends += 1;
+        }
+        self.stats.max_send_lateness = self.stats.max_send_lateness.max(lateness);
+        self.sent_at[self.seq as usize % SENT_AT_SLOTS] = Some(now);
     }
 
     fn gaussian(&mut self) -> f64 {
@@ -468,17 +543,21 @@ impl SimulatedController {
     }
 
     /// If a monitoring message is due at `now`, advances the simulation one cycle, writes
-    /// the message into `buf` and returns its length. After a stall of more than five
-    /// periods, missed cycles are skipped rather than sent in a burst.
+    /// the message into `buf` and returns its length. A cycle that runs a period or more
+    /// late skips the cycles it missed and starts a new period at `now`: like a real
+    /// controller, it never sends two messages less than a period apart, which would leave
+    /// the client no time to answer the first.
     pub fn poll_transmit(&mut self, now: Instant, buf: &mut [u8]) -> Option<usize> {
         if now < self.next_send {
             return None;
         }
         let period = self.send_period();
+        let due = self.next_send;
         self.next_send += period;
-        if now > self.next_send + period * 5 {
+        if now >= self.next_send {
             self.next_send = now + period;
         }
+        self.audit_cycle(now, due);
         let dt = period.as_secs_f64();
         self.step_arm(dt);
         self.update_quality_and_state();
@@ -704,6 +783,76 @@ mod tests {
         let dropped = run();
         assert_eq!(dropped, run());
         assert!((400..600).contains(&dropped), "{dropped}");
+    }
+
+    /// A reply reflecting `reflected`, with client sequence counter `seq`.
+    fn reply(seq: u32, reflected: u32, q: &Joints) -> Vec<u8> {
+        use crate::messages::{FriCommandMessage, LBR_COMMAND_MESSAGE_ID, MessageCommandData};
+        let msg = FriCommandMessage {
+            header: Some(
+                codec::Header {
+                    message_identifier: LBR_COMMAND_MESSAGE_ID,
+                    sequence_counter: seq,
+                    reflected_sequence_counter: reflected,
+                }
+                .to_message(),
+            ),
+            command_data: Some(MessageCommandData {
+                joint_position: Some(JointValues::from_array(q)),
+                ..Default::default()
+            }),
+            end_of_message_data: None,
+        };
+        let mut buf = [0u8; crate::messages::MAX_DATAGRAM_SIZE];
+        let n = codec::encode_command(&msg, &mut buf).unwrap();
+        buf[..n].to_vec()
+    }
+
+    #[test]
+    fn audit_blames_a_missed_reply_on_the_side_that_was_late() {
+        let t0 = Instant::now();
+        let mut sim = SimulatedController::new(SimConfig::default(), t0).unwrap();
+        let q = sim.q();
+        let mut buf = [0u8; crate::messages::MAX_DATAGRAM_SIZE];
+        let period = sim.send_period();
+        let mut t = t0;
+        let mut client_seq = 0;
+        let mut answer = |sim: &mut SimulatedController, at: Instant| {
+            let reflected = sim.seq.wrapping_sub(1);
+            sim.handle_datagram(at, &reply(client_seq, reflected, &q))
+                .unwrap();
+            client_seq += 1;
+        };
+        // On time: sent when due, answered within a millisecond.
+        for _ in 0..10 {
+            sim.poll_transmit(t, &mut buf).unwrap();
+            answer(&mut sim, t + Duration::from_millis(1));
+            t += period;
+        }
+        let s = sim.stats();
+        assert_eq!((s.missed_replies, s.late_sends, s.late_replies), (0, 0, 0));
+        assert_eq!(s.max_reply_latency, Duration::from_millis(1));
+        // The client is late: its reply arrives after the next message went out.
+        sim.poll_transmit(t, &mut buf).unwrap();
+        sim.poll_transmit(t + period, &mut buf).unwrap();
+        answer(&mut sim, t + period + Duration::from_millis(1));
+        t += period * 2;
+        sim.poll_transmit(t, &mut buf).unwrap();
+        let s = sim.stats();
+        assert_eq!((s.missed_replies, s.missed_after_late_send), (1, 0));
+        // The controller is late: it sends 4 ms after the due time, the client answers
+        // 2 ms later, after the next message was due and sent.
+        answer(&mut sim, t + Duration::from_millis(1));
+        t += period;
+        sim.poll_transmit(t + Duration::from_millis(4), &mut buf)
+            .unwrap();
+        sim.poll_transmit(t + period, &mut buf).unwrap();
+        answer(&mut sim, t + period + Duration::from_millis(1));
+        sim.poll_transmit(t + period * 2, &mut buf).unwrap();
+        let s = sim.stats();
+        assert_eq!((s.missed_replies, s.missed_after_late_send), (2, 1));
+        assert_eq!(s.late_sends, 1);
+        assert_eq!(s.max_send_lateness, Duration::from_millis(4));
     }
 
     #[test]

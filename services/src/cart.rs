@@ -9,10 +9,9 @@
 //! encoder noise; each time the arm comes to rest it settles with the repeatability
 //! wobble; the camera renders from the true flange pose through the true mount.
 
-use std::net::{SocketAddr, UdpSocket};
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
@@ -22,8 +21,7 @@ use b2b_sim::Iso3;
 use b2b_sim::render::{RenderSettings, Renderer};
 use b2b_sim::scene::Scene;
 use b2b_sim::sensor::{DepthImage, GreyImage, expose};
-use kuka_fri::messages::MAX_DATAGRAM_SIZE;
-use kuka_fri::{SessionState, SimConfig, SimulatedController};
+use kuka_fri::{SimConfig, SimServer, SimServerConfig};
 use rand::SeedableRng;
 
 /// One rendered frame, as the camera process publishes it.
@@ -61,13 +59,6 @@ fn now_ns() -> u64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_nanos() as u64)
-}
-
-#[derive(Debug, Clone, Copy)]
-struct ArmState {
-    q: Joints,
-    /// Last time the client was heard from.
-    heard: Instant,
 }
 
 /// Runs the cart until `stop` is set or the client is silent for the idle timeout.
@@ -108,8 +99,6 @@ pub fn run_cart(
     let mut rng = b2b_sim::Rng::seed_from_u64(opts.seed);
     rng.set_stream(0x0ca7_0000 + r as u64);
 
-    let socket = UdpSocket::bind(opts.bind)
-        .with_context(|| format!("cannot bind the FRI server to {}", opts.bind))?;
     let cfg = SimConfig {
         send_period_ms: opts.send_period_ms,
         limits: spec.model.limits(),
@@ -118,69 +107,15 @@ pub fn run_cart(
         seed: opts.seed.wrapping_add(r as u64 * 7919),
         ..SimConfig::default()
     };
+    // The FRI server runs on its own cycle thread (SCHED_FIFO where permitted) and never
+    // waits for this one, which renders: the robot application starts the FRI overlay
+    // once the connection is good, as a Sunrise program would.
     let started = Instant::now();
-    let mut controller = SimulatedController::new(cfg, started)?;
-    let state = Arc::new(Mutex::new(ArmState {
-        q: controller.q(),
-        heard: started,
-    }));
-    let fri_stop = Arc::new(AtomicBool::new(false));
-    let fri = {
-        let state = Arc::clone(&state);
-        let fri_stop = Arc::clone(&fri_stop);
-        let client = opts.client;
-        std::thread::Builder::new()
-            .name("fri-server".into())
-            .spawn(move || -> anyhow::Result<()> {
-                let mut buf = vec![0u8; MAX_DATAGRAM_SIZE];
-                let mut rx = vec![0u8; MAX_DATAGRAM_SIZE + 1];
-                while !fri_stop.load(Ordering::SeqCst) {
-                    let now = Instant::now();
-                    // The robot application starts the FRI overlay once the
-                    // connection is good, as a Sunrise program would.
-                    if controller.state() == SessionState::MonitoringReady {
-                        controller.start_commanding();
-                    }
-                    while let Some(n) = controller.poll_transmit(now, &mut buf) {
-                        // A send error before the client binds is what hardware sees too.
-                        let _ = socket.send_to(&buf[..n], client);
-                    }
-                    let wait = controller
-                        .poll_timeout()
-                        .saturating_duration_since(Instant::now())
-                        .max(Duration::from_micros(100));
-                    socket.set_read_timeout(Some(wait))?;
-                    match socket.recv_from(&mut rx) {
-                        Ok((n, from)) if from == client => {
-                            if let Err(e) = controller.handle_datagram(Instant::now(), &rx[..n]) {
-                                tracing::warn!(
-                                    "cart: rejected FRI datagram: {}",
-                                    b2b_pipeline::error_chain(&e)
-                                );
-                            }
-                            if let Ok(mut s) = state.lock() {
-                                s.heard = Instant::now();
-                            }
-                        }
-                        Ok(_) => {}
-                        Err(e)
-                            if matches!(
-                                e.kind(),
-                                std::io::ErrorKind::WouldBlock
-                                    | std::io::ErrorKind::TimedOut
-                                    | std::io::ErrorKind::ConnectionRefused
-                            ) => {}
-                        Err(e) => return Err(e.into()),
-                    }
-                    if let Ok(mut s) = state.lock() {
-                        s.q = controller.q();
-                    }
-                }
-                let violations = controller.stats();
-                tracing::info!("cart: FRI server stopped: {violations:?}");
-                Ok(())
-            })?
-    };
+    let fri = SimServer::start(SimServerConfig {
+        bind: opts.bind,
+        ..SimServerConfig::new(opts.client, cfg)
+    })
+    .with_context(|| format!("cannot start the FRI server on {}", opts.bind))?;
 
     let mut settings = RenderSettings::ideal();
     settings.lighting = scene.lighting.clone();
@@ -189,14 +124,12 @@ pub fn run_cart(
     let mut number = 0u64;
     let outcome = (|| -> anyhow::Result<()> {
         while !stop.load(Ordering::SeqCst) {
-            let s = *state
-                .lock()
-                .map_err(|_| anyhow::anyhow!("cart state lock poisoned"))?;
-            if s.heard.elapsed() > opts.idle_timeout {
+            let s = fri.snapshot();
+            if s.heard.unwrap_or(started).elapsed() > opts.idle_timeout {
                 tracing::info!("cart: client silent for {:?}; stopping", opts.idle_timeout);
                 break;
             }
-            if fri.is_finished() {
+            if !fri.is_running() {
                 break;
             }
             // Settle: a fresh repeatability wobble every time the arm comes to rest
@@ -226,12 +159,10 @@ pub fn run_cart(
         }
         Ok(())
     })();
-    fri_stop.store(true, Ordering::SeqCst);
-    let fri_result = fri
-        .join()
-        .map_err(|_| anyhow::anyhow!("the FRI server thread panicked"))?;
+    let fri_result = fri.shutdown();
     outcome?;
-    fri_result?;
+    let last = fri_result.context("the FRI server stopped")?;
+    tracing::info!("cart: FRI server stopped: {:?}", last.stats);
     Ok(number)
 }
 
