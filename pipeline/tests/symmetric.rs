@@ -266,8 +266,8 @@ fn far_upright_symmetric_board_without_intrinsics() {
         "{:?}",
         result.captures
     );
-    // Measured (seed 7): see the README; 1.5x of it here.
-    assert!(dt < 0.9e-3 && da.to_degrees() < 0.03, "{dt} m {da} rad");
+    // Measured (seed 7): 0.47 mm, 0.014° (README); 1.5x of it here.
+    assert!(dt < 0.7e-3 && da.to_degrees() < 0.021, "{dt} m {da} rad");
     // The covariance holds the truth (chi-square, 6 dof, 99.9%).
     assert!(m2 < 22.5, "Mahalanobis² {m2}");
 }

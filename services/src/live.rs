@@ -48,14 +48,22 @@ pub trait FrameSource {
     fn dropped(&self) -> u64;
 }
 
-/// The calibration target as the agent knows it (configuration, not truth).
+/// The calibration target as the agent knows it (configuration, not truth): the
+/// pipeline's one target model, and its points.
 #[derive(Debug, Clone)]
 pub struct LiveTarget {
-    pub spec: b2b_vision::CheckerboardSpec,
+    pub spec: b2b_pipeline::TargetSpec,
     pub points: Vec<Point3<f64>>,
 }
 
 impl LiveTarget {
+    pub fn new(spec: b2b_pipeline::TargetSpec) -> Self {
+        LiveTarget {
+            points: spec.all_points(),
+            spec,
+        }
+    }
+
     /// A checkerboard of `cols` x `rows` inner corners.
     pub fn checkerboard(cols: usize, rows: usize, square_m: f64) -> anyhow::Result<Self> {
         let spec = b2b_vision::CheckerboardSpec {
@@ -64,10 +72,14 @@ impl LiveTarget {
             square_m,
         };
         spec.validate()?;
-        Ok(LiveTarget {
-            points: b2b_calib::synth::board_points(cols, rows, square_m),
+        Ok(LiveTarget::new(b2b_pipeline::TargetSpec::Checkerboard(
             spec,
-        })
+        )))
+    }
+
+    /// The board centre every message and plan uses ([`b2b_pipeline::TargetSpec::centre`]).
+    pub fn centre(&self) -> Point3<f64> {
+        self.spec.centre()
     }
 
     /// Detects the target in a frame and fits its pose, or says why not.
@@ -94,12 +106,8 @@ impl LiveTarget {
             Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), None),
         };
         let sharpness = img.laplacian_variance().ok();
-        let detection = match b2b_vision::detect_checkerboard(&img, &self.spec) {
+        let (detection, pose) = match self.spec.detect(&img, &frame.camera) {
             Ok(d) => d,
-            Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
-        };
-        let pose = match b2b_vision::board_pose(&detection, &frame.camera) {
-            Ok(p) => p,
             Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
         };
         (
@@ -374,6 +382,7 @@ impl LiveSource {
             base_from_target: board,
             flange_from_camera: self.cfg.mount_approx,
             target_points: &self.target.points,
+            view_axis: self.target.spec.view_axis(),
         };
         let cfg = PlanConfig {
             count: count.max(3),
@@ -427,7 +436,7 @@ impl LiveSource {
             .copied()
             .or(self.board_estimate)
             .unwrap_or(self.cfg.board_approx);
-        let centre = crate::plan::target_centre(&self.target.points);
+        let centre = self.target.centre();
         Some((base_from_flange * self.cfg.mount_approx).inverse() * (board * centre))
     }
 
@@ -489,7 +498,7 @@ impl LiveSource {
                 observed,
                 pixels: Some(frame.grey.clone()),
                 features: features.clone(),
-                target_centre: crate::plan::target_centre(&self.target.points),
+                target_centre: self.target.centre(),
             };
             let Some(a) = &auto else {
                 self.timings.decide_ms += ms(decide_started.elapsed());
@@ -507,7 +516,7 @@ impl LiveSource {
                     let off = ((c.x - camera.cx) / camera.width as f64)
                         .abs()
                         .max(((c.y - camera.cy) / camera.height as f64).abs());
-                    let centre = crate::plan::target_centre(&self.target.points);
+                    let centre = self.target.centre();
                     (
                         Some(o.camera_from_target * centre),
                         (off > a.off_centre).then(|| {
@@ -535,6 +544,7 @@ impl LiveSource {
                         base_from_target: self.cfg.board_approx,
                         flange_from_camera: self.cfg.mount_approx,
                         target_points: &self.target.points,
+                        view_axis: self.target.spec.view_axis(),
                     };
                     match reach(&scene, &wanted, &q) {
                         Ok((q_new, _))
@@ -606,7 +616,7 @@ impl LiveSource {
             observed: Err(self.reject(row, last_reason)),
             pixels: None,
             features: None,
-            target_centre: crate::plan::target_centre(&self.target.points),
+            target_centre: self.target.centre(),
         })
     }
 

@@ -13,6 +13,7 @@
 //! checked at a fine joint step against the same guard, and a viewpoint whose leg
 //! leaves the workspace is dropped rather than approached.
 
+use anyhow::Context;
 use b2b_calib::camera::CameraModel;
 use b2b_robot::{Arm, IkOptions, Joints};
 use kuka_fri::SafetyGuard;
@@ -92,6 +93,9 @@ pub struct PlanScene<'a> {
     pub flange_from_camera: Iso3,
     /// The target's points in its own frame (corners).
     pub target_points: &'a [Point3<f64>],
+    /// Unit direction (target frame) from the target towards where it is seen
+    /// from ([`b2b_pipeline::TargetSpec::view_axis`]: -z for a board).
+    pub view_axis: Vector3<f64>,
 }
 
 /// One planned viewpoint.
@@ -241,9 +245,21 @@ pub fn plan_viewpoints(
         "plan: the target has no points"
     );
     let centre = target_centre(scene.target_points);
-    // The printed side faces -z of the target frame; "up" in the image follows the
-    // base's z as seen from the target.
+    // Viewing directions lie in a cone about the target's view axis (a board's
+    // printed side faces -z of its frame); "up" in the image follows the base's z
+    // as seen from the target.
     let up_in_target = scene.base_from_target.inverse().rotation * Vector3::z();
+    let axis = scene
+        .view_axis
+        .try_normalize(1e-9)
+        .context("plan: the target's view axis is zero")?;
+    // Two directions across the cone; for a board (axis -z) exactly x and y.
+    let across_1 = if axis.x.abs() < 0.9 {
+        (Vector3::x() - axis * axis.x).normalize()
+    } else {
+        (Vector3::y() - axis * axis.y).normalize()
+    };
+    let across_2 = -axis.cross(&across_1);
     let candidates = cfg.count * 4;
     let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
     let mut dropped: std::collections::BTreeMap<String, usize> = Default::default();
@@ -260,11 +276,9 @@ pub fn plan_viewpoints(
         let dist = cfg.distance_m[0] + (cfg.distance_m[1] - cfg.distance_m[0]) * frac;
         let roll_sign = if i % 2 == 0 { 1.0 } else { -1.0 };
         let roll = roll_sign * cfg.max_roll_rad * ((i as f64 * 0.381_966).fract());
-        let dir = Vector3::new(
-            tilt.sin() * azimuth.cos(),
-            tilt.sin() * azimuth.sin(),
-            -tilt.cos(),
-        );
+        let dir = across_1 * (tilt.sin() * azimuth.cos())
+            + across_2 * (tilt.sin() * azimuth.sin())
+            + axis * tilt.cos();
         let eye = centre + dir * dist;
         let target_from_camera = look_at(&eye, &centre, &up_in_target, roll);
         let camera_from_target = target_from_camera.inverse();
@@ -424,6 +438,7 @@ mod tests {
             base_from_target: board(),
             flange_from_camera: mount(),
             target_points: &points,
+            view_axis: -Vector3::z(),
         };
         let start = Arm::comfortable();
         let plan = plan_viewpoints(&scene, &start, &PlanConfig::default()).unwrap();
@@ -467,6 +482,7 @@ mod tests {
             base_from_target: Iso3::translation(3.0, 0.0, 0.0) * board(),
             flange_from_camera: mount(),
             target_points: &points,
+            view_axis: -Vector3::z(),
         };
         let plan = plan_viewpoints(&scene, &Arm::comfortable(), &PlanConfig::default()).unwrap();
         assert!(plan.viewpoints.is_empty());

@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::Context;
+use b2b_dataset::Target;
+use b2b_pipeline::TargetSpec;
 use b2b_protocol::Pose;
 use b2b_robot::{Arm, IiwaModel, WorkspaceBox};
 use kuka_fri::{FriClient, FriClientConfig, SafetyGuard};
@@ -20,21 +22,15 @@ use serde::{Deserialize, Serialize};
 use crate::live::{FrameSource, LiveConfig, LiveMode, LiveSource, LiveTarget};
 use crate::plan::PlanConfig;
 
-/// The calibration board of a cell.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TargetSetup {
-    /// Inner corners `[columns, rows]` of the checkerboard.
-    pub inner_corners: [u32; 2],
-    pub square_m: f64,
-}
-
 /// One cart's setup (`--setup FILE`, JSON).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CellSetup {
     pub model: IiwaModel,
-    pub target: TargetSetup,
+    /// The target, exactly as `dataset.json` describes it (`kind`: checkerboard,
+    /// charuco, aruco_grid, multimarker); a multimarker file's relative path is
+    /// taken from the setup file's folder.
+    pub target: Target,
     /// Roughly where the board is in this robot's base.
     #[serde(rename = "T_base_target_approx")]
     pub base_from_target_approx: Pose,
@@ -50,6 +46,10 @@ pub struct CellSetup {
     /// Fraction of the rated joint velocities and accelerations the routine uses.
     #[serde(default = "default_speed")]
     pub speed_fraction: f64,
+    /// The file this setup was read from (or stands for), which relative paths
+    /// in it are taken from.
+    #[serde(skip)]
+    pub source: PathBuf,
 }
 
 fn default_margin() -> f64 {
@@ -63,9 +63,27 @@ fn default_speed() -> f64 {
 impl CellSetup {
     /// Reads a setup file.
     pub fn load(file: &Path) -> anyhow::Result<Self> {
-        let setup: CellSetup = crate::read_json(file)?;
+        let mut setup: CellSetup = crate::read_json(file)?;
+        setup.source = file.to_owned();
         setup.check().with_context(|| file.display().to_string())?;
         Ok(setup)
+    }
+
+    /// The target as the pipeline knows it (one model for datasets and live
+    /// agents). A target with a symmetry (a checkerboard with `cols + rows` even)
+    /// is refused: the agent publishes each capture as it is taken and cannot
+    /// choose its labelling from motion the way the offline pipeline does.
+    pub fn target_spec(&self) -> anyhow::Result<TargetSpec> {
+        let spec = TargetSpec::from_manifest(&self.target, &self.source)?;
+        anyhow::ensure!(
+            spec.symmetry().is_trivial(),
+            "{}: a {} looks the same turned by 180°, and the live agent cannot choose its \
+             labelling capture by capture; use an asymmetric board (e.g. 9x6 inner corners \
+             = 10x7 squares) or a ChArUco board, or calibrate offline from a dataset",
+            self.source.display(),
+            spec.describe()
+        );
+        Ok(spec)
     }
 
     fn check(&self) -> anyhow::Result<()> {
@@ -74,12 +92,7 @@ impl CellSetup {
         self.flange_from_camera_approx
             .to_isometry("T_flange_camera_approx")?;
         WorkspaceBox::new(self.workspace_min, self.workspace_max)?;
-        anyhow::ensure!(
-            self.target.inner_corners.iter().all(|&n| n >= 2)
-                && self.target.square_m.is_finite()
-                && self.target.square_m > 0.0,
-            "target: inner_corners must be >= 2 each and square_m > 0"
-        );
+        self.target_spec().context("target")?;
         anyhow::ensure!(
             self.joint_margin_rad.is_finite() && (0.0..0.5).contains(&self.joint_margin_rad),
             "joint_margin_rad must be in [0, 0.5)"
@@ -95,8 +108,10 @@ impl CellSetup {
 
     /// The setup of `robot` in a simulator scene, with the board position off by
     /// 2 cm / 4 deg and the mount by 5 mm / 2 deg (what a setup sheet and a drawing
-    /// give), so that nothing the agent plans with is the truth.
-    pub fn from_scene(scene_file: &Path, robot: &str) -> anyhow::Result<Self> {
+    /// give), so that nothing the agent plans with is the truth. The target's files
+    /// (a multimarker's ARToolKit file) are written into `dir`, and the setup
+    /// stands for `dir/setup-ROBOT.json`.
+    pub fn from_scene(scene_file: &Path, robot: &str, dir: &Path) -> anyhow::Result<Self> {
         let scene = b2b_sim::scene::Scene::load(scene_file)?;
         let r = scene
             .robots
@@ -104,15 +119,13 @@ impl CellSetup {
             .position(|s| s.id == robot)
             .with_context(|| format!("robot '{robot}' is not in {}", scene_file.display()))?;
         let spec = &scene.robots[r];
-        let board_spec = scene.board.as_ref().with_context(|| {
-            format!(
-                "{}: the live routine needs a checkerboard scene (other targets are not wired to it yet)",
-                scene_file.display()
-            )
-        })?;
-        let base1_from_target = board_spec
-            .base1_from_target
-            .to_iso(scene_file, "board.base1_from_target")?;
+        let (model, base1_from_target) = scene.target_model(scene_file)?;
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        for (name, text) in &model.files {
+            let path = dir.join(name);
+            std::fs::write(&path, text)
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
         let base1_from_base = if r == 0 {
             Isometry3::identity()
         } else {
@@ -135,19 +148,19 @@ impl CellSetup {
             .flange_from_camera
             .to_iso(scene_file, &format!("robots[{r}].flange_from_camera"))?
             * off([0.003, -0.003, 0.002], [1.0, -0.4, 0.3], 2.0);
-        Ok(CellSetup {
+        let setup = CellSetup {
             model: spec.model,
-            target: TargetSetup {
-                inner_corners: board_spec.inner_corners,
-                square_m: board_spec.square_m,
-            },
+            target: model.manifest,
             base_from_target_approx: Pose::from_isometry(&board),
             flange_from_camera_approx: Pose::from_isometry(&mount),
             workspace_min: [-0.3, -0.9, 0.12],
             workspace_max: [1.1, 0.9, 1.3],
             joint_margin_rad: default_margin(),
             speed_fraction: default_speed(),
-        })
+            source: dir.join(format!("setup-{robot}.json")),
+        };
+        setup.check()?;
+        Ok(setup)
     }
 
     /// The safety guard every command passes: joint limits with the margin, rated
@@ -193,11 +206,7 @@ pub fn live_source(
     frames: Box<dyn FrameSource>,
     features: Option<b2b_pipeline::rgbd::RgbdOptions>,
 ) -> anyhow::Result<LiveSource> {
-    let target = LiveTarget::checkerboard(
-        setup.target.inner_corners[0] as usize,
-        setup.target.inner_corners[1] as usize,
-        setup.target.square_m,
-    )?;
+    let target = LiveTarget::new(setup.target_spec()?);
     let cfg = LiveConfig {
         robot: robot.to_owned(),
         mode,

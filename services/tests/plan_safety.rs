@@ -81,6 +81,7 @@ proptest! {
             base_from_target: board,
             flange_from_camera: mount,
             target_points: &points,
+            view_axis: -nalgebra::Vector3::z(),
         };
         let start: Joints = std::array::from_fn(|j| Arm::comfortable()[j] + start_jitter[j]);
         let cfg = PlanConfig { count: 10, ..PlanConfig::default() };

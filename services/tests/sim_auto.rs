@@ -1,12 +1,17 @@
 //! The automatic routine end to end in the simulator: two simulated carts (each an FRI
 //! server on loopback UDP and a rendering camera publishing into iceoryx2, in a
 //! process of its own), two `agent auto` processes driving them through FRI, and a
-//! coordinator, all over zenoh on loopback. The board's configured position is off by
-//! 6 cm, so the first views sit off-centre and the closed loop must re-centre them.
-//! Checks: both arms complete the routine with >= 25 good captures, the result is
-//! within its predicted error of the ground truth (with the arms' absolute accuracy
-//! as the robot noise), and `coordinator verify` against the scene's touch pairs is
-//! within the predicted bound.
+//! coordinator, all over zenoh on loopback.
+//!
+//! - The checkerboard scene, with the board's configured position off by 6 cm, so
+//!   the first views sit off-centre and the closed loop must re-centre them. Checks:
+//!   both arms complete the routine with >= 25 good captures, the result is within
+//!   its predicted error of the ground truth, and `coordinator verify` against the
+//!   scene's touch pairs is within the predicted bound.
+//! - The ChArUco scene with occluders over the board, ARToolKit's 4x3 multimarker
+//!   and the three-face corner (each target given to the agent exactly as its
+//!   `dataset.json` gives it: one target model offline and live): the live touch
+//!   mean is within 1.5x the offline one on the same scene's dataset.
 
 mod common;
 
@@ -14,25 +19,40 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use b2b_protocol::Pose;
+use b2b_protocol::{CalibrationResult, Pose};
 use b2b_services::setup::CellSetup;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
-fn dataset() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
+fn dataset(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../datasets")
+        .join(name)
 }
 
-#[test]
-fn two_carts_run_the_automatic_routine_to_a_verified_result() {
+/// How one end-to-end run is set up.
+struct Run<'a> {
+    dataset: &'a str,
+    /// Moves the setup sheet's board away from where it is (in the board frame).
+    board_off: Option<Isometry3<f64>>,
+    count: usize,
+    min_good: usize,
+    /// `coordinator run --method`.
+    method: &'a str,
+}
+
+/// The coordinator and two `agent auto --sim` processes on `run`'s scene: each
+/// agent's routine summary line and the result.
+fn run_auto(run: &Run<'_>) -> (tempfile::TempDir, PathBuf, Vec<String>, CalibrationResult) {
     let net = common::net();
-    let dir = &net.dir;
     let (coordinator_cfg, agent_cfg) = (&net.coordinator_cfg, &net.agent_cfg);
-    let scene = dataset().join("scene.json");
+    let dir = net.dir;
+    let scene = dataset(run.dataset).join("scene.json");
     let result_file = dir.path().join("RESULT.json");
     let sigma = ["--robot-sigma-mm", "0.3", "--robot-sigma-deg", "0.015"];
     let mut coordinator = common::Killed(
         Command::new(env!("CARGO_BIN_EXE_coordinator"))
-            .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+            .args(["run", "--robots", "robot1,robot2", "--method", run.method])
+            .arg("--zenoh")
             .arg(coordinator_cfg)
             .arg("--state-dir")
             .arg(dir.path().join("coordinator-state"))
@@ -46,14 +66,11 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
     );
     let mut agents = vec![];
     for robot in ["robot1", "robot2"] {
-        // The setup sheet puts the board 6 cm and 5 deg away from where it is.
-        let mut setup = CellSetup::from_scene(&scene, robot).unwrap();
-        let board = setup.base_from_target_approx.to_isometry("board").unwrap()
-            * Isometry3::from_parts(
-                Translation3::new(0.05, 0.035, 0.0),
-                UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, 5f64.to_radians())),
-            );
-        setup.base_from_target_approx = Pose::from_isometry(&board);
+        let mut setup = CellSetup::from_scene(&scene, robot, dir.path()).unwrap();
+        if let Some(off) = run.board_off {
+            let board = setup.base_from_target_approx.to_isometry("board").unwrap() * off;
+            setup.base_from_target_approx = Pose::from_isometry(&board);
+        }
         let setup_file = dir.path().join(format!("setup-{robot}.json"));
         std::fs::write(&setup_file, serde_json::to_string_pretty(&setup).unwrap()).unwrap();
         let child = Command::new(env!("CARGO_BIN_EXE_agent"))
@@ -61,10 +78,8 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             .arg(&scene)
             .arg("--setup")
             .arg(&setup_file)
-            // One good capture more than the 25 the result must use: the estimator
-            // may rightly leave one out (a frame taken while the arm still moved
-            // on a loaded machine), and that must not fail the run.
-            .args(["--min-good", "26", "--count", "30"])
+            .args(["--min-good", &run.min_good.to_string()])
+            .args(["--count", &run.count.to_string()])
             .arg("--zenoh")
             .arg(agent_cfg)
             .arg("--state-dir")
@@ -78,6 +93,7 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
         agents.push((robot, child));
     }
     let deadline = Instant::now() + Duration::from_secs(400);
+    let mut summaries = vec![];
     for (robot, child) in agents {
         let out = child.wait_with_output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
@@ -92,6 +108,33 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             .find(|l| l.starts_with(&format!("{robot}: ")) && l.contains(" captures ("))
             .unwrap_or_else(|| panic!("{robot}: no summary in {stderr}"));
         eprintln!("{summary}");
+        summaries.push(summary.to_owned());
+    }
+    let result = common::wait_for_result(
+        &result_file,
+        &mut coordinator,
+        deadline.saturating_duration_since(Instant::now()),
+    );
+    (dir, result_file, summaries, result)
+}
+
+#[test]
+fn two_carts_run_the_automatic_routine_to_a_verified_result() {
+    // One good capture more than the 25 the result must use: the estimator may
+    // rightly leave one out (a frame taken while the arm still moved on a loaded
+    // machine), and that must not fail the run.
+    let (_dir, result_file, summaries, result) = run_auto(&Run {
+        dataset: "sim-checkerboard-2x12",
+        // The setup sheet puts the board 6 cm and 5 deg away from where it is.
+        board_off: Some(Isometry3::from_parts(
+            Translation3::new(0.05, 0.035, 0.0),
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, 5f64.to_radians())),
+        )),
+        count: 30,
+        min_good: 26,
+        method: "board",
+    });
+    for summary in &summaries {
         let retries: usize = summary
             .split(" retries")
             .next()
@@ -100,14 +143,9 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             .unwrap_or(0);
         assert!(
             retries > 0,
-            "{robot}: the off-centre board was never re-centred: {summary}"
+            "the off-centre board was never re-centred: {summary}"
         );
     }
-    let result = common::wait_for_result(
-        &result_file,
-        &mut coordinator,
-        deadline.saturating_duration_since(Instant::now()),
-    );
     for robot in ["robot1", "robot2"] {
         let used = result.captures.used.get(robot).copied().unwrap_or(0);
         assert!(
@@ -116,7 +154,7 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
             result.captures.rejected
         );
     }
-    let (err, _) = common::truth_error(&dataset(), &result);
+    let (err, _) = common::truth_error(&dataset("sim-checkerboard-2x12"), &result);
     let bound = 3.0 * result.predicted_touch_error_m.p95.max(2e-4);
     eprintln!(
         "live auto result: {:.3} mm from the truth; predicted touch error p95 {:.3} mm",
@@ -127,10 +165,78 @@ fn two_carts_run_the_automatic_routine_to_a_verified_result() {
 
     let (printout, v) = common::verify(
         &result_file,
-        &dataset().join("touch_points.csv"),
+        &dataset("sim-checkerboard-2x12").join("touch_points.csv"),
         &["--tip-sigma-mm", "0.3"],
     );
     eprintln!("{printout}");
     let mean_mm = v["touch_mean_mm"].as_f64().unwrap();
     assert!(mean_mm < 1.5, "touch mean {mean_mm} mm");
+}
+
+/// `agent auto` on a committed scene with the target given exactly as its
+/// `dataset.json` gives it (one target model offline and live): each arm keeps at
+/// least `min_used` captures, and the live touch mean is within 1.5x the offline
+/// one on the scene's dataset (the same carts and touch pairs).
+fn live_within_offline(name: &str, method: &str, count: usize, min_used: usize) {
+    let (dir, result_file, _, result) = run_auto(&Run {
+        dataset: name,
+        board_off: None,
+        count,
+        min_good: min_used + 1,
+        method,
+    });
+    for robot in ["robot1", "robot2"] {
+        let used = result.captures.used.get(robot).copied().unwrap_or(0);
+        assert!(
+            used >= min_used,
+            "{robot}: only {used} good captures; rejected: {:?}",
+            result.captures.rejected
+        );
+    }
+    let (err, _) = common::truth_error(&dataset(name), &result);
+    eprintln!(
+        "live {name}: {:.3} mm from the truth; predicted touch error p95 {:.3} mm",
+        err * 1e3,
+        result.predicted_touch_error_m.p95 * 1e3
+    );
+    let touch = dataset(name).join("touch_points.csv");
+    let (printout, live) = common::verify(&result_file, &touch, &["--tip-sigma-mm", "0.3"]);
+    eprintln!("{printout}");
+    let offline_dir = dir.path().join("offline");
+    std::fs::create_dir_all(&offline_dir).unwrap();
+    common::offline_result_of(&offline_dir, &dataset(name), method);
+    let (_, offline) = common::verify(
+        &offline_dir.join("OFFLINE.json"),
+        &touch,
+        &["--tip-sigma-mm", "0.3"],
+    );
+    let (live_mm, offline_mm) = (
+        live["touch_mean_mm"].as_f64().unwrap(),
+        offline["touch_mean_mm"].as_f64().unwrap(),
+    );
+    eprintln!("{name}: touch mean live {live_mm:.3} mm, offline {offline_mm:.3} mm");
+    assert!(
+        live_mm <= 1.5 * offline_mm,
+        "live touch mean {live_mm} mm against offline {offline_mm} mm"
+    );
+    assert!(err < 1.5e-3, "{err} m from the truth");
+}
+
+/// The ChArUco scene with occluders over the board (partial views).
+#[test]
+fn charuco_with_occluders_runs_the_automatic_routine() {
+    live_within_offline("sim-charuco-occluded-2x10", "board", 20, 15);
+}
+
+/// ARToolKit's 4x3 multimarker sheet.
+#[test]
+fn planar_multimarker_runs_the_automatic_routine() {
+    live_within_offline("sim-multimarker-4x3-2x10", "multimarker", 20, 15);
+}
+
+/// The non-planar three-face corner: viewpoints about the mean of its faces'
+/// normals.
+#[test]
+fn three_face_corner_runs_the_automatic_routine() {
+    live_within_offline("sim-multimarker-corner-2x10", "multimarker", 20, 15);
 }

@@ -203,7 +203,13 @@ fn connect(
         (Some(scene), None) => {
             let setup = match &live.setup {
                 Some(f) => CellSetup::load(f)?,
-                None => CellSetup::from_scene(scene, robot)?,
+                // The target's files (a multimarker's) go beside the run's own
+                // service root, one folder per agent process.
+                None => CellSetup::from_scene(
+                    scene,
+                    robot,
+                    &std::env::temp_dir().join(format!("b2b-agent-{}-{robot}", std::process::id())),
+                )?,
             };
             // A unique service root per run, so two simulated cells never mix.
             let prefix = format!("{}/sim{}", live.camera_prefix, std::process::id());
