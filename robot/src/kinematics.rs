@@ -231,7 +231,9 @@ impl Arm {
             q = next;
             // Done when the task is met and the posture has settled (or is held by a
             // limit, where the clamped step vanishes).
-            if err.0 < opts.tolerance_m * 1e-3 && err.1 < opts.tolerance_rad * 1e-3 && moved < 1e-8
+            if err.0 < opts.tolerance_m * 1e-3
+                && err.1 < opts.tolerance_rad * 1e-3
+                && moved < opts.settle_rad
             {
                 break;
             }
@@ -291,6 +293,10 @@ pub struct IkOptions {
     pub preferred: Option<Joints>,
     /// Solutions stay this far inside every position limit, rad.
     pub limit_margin: f64,
+    /// The posture counts as settled once no joint moves more than this in an
+    /// iteration (the null-space pull converges geometrically, so a tight value
+    /// costs iterations without moving the flange), rad.
+    pub settle_rad: f64,
 }
 
 impl Default for IkOptions {
@@ -305,6 +311,7 @@ impl Default for IkOptions {
             posture_gain: 0.5,
             preferred: None,
             limit_margin: 2f64.to_radians(),
+            settle_rad: 1e-8,
         }
     }
 }
