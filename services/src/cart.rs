@@ -75,8 +75,10 @@ pub fn run_cart(
         .position(|s| s.id == opts.robot)
         .with_context(|| format!("robot '{}' is not in {}", opts.robot, opts.scene.display()))?;
     let spec = &scene.robots[r];
-    let camera = scene.camera(r)?;
-    let renderer = Renderer::new(&camera)?;
+    // Rendered through the true camera; published with the intrinsics the camera
+    // reports about itself (its factory calibration), which need not be the truth.
+    let renderer = Renderer::new(&scene.camera(r)?)?;
+    let camera = scene.reported_camera(r)?;
     let (geometry, _, _) = b2b_sim::generate::scene_geometry(&scene, &opts.scene)?;
     let base1_from_base2 = scene
         .base1_from_base2

@@ -334,7 +334,8 @@ pub fn generate_scene(
         }
         summary.captures.push(captures.len());
         summary.attempts.push(attempts);
-        let c = &spec.camera;
+        // What the camera says about itself, which is what a dataset records.
+        let c = spec.reported_camera.as_ref().unwrap_or(&spec.camera);
         robots_manifest.push(RobotManifest {
             id: spec.id.clone(),
             camera: Some(CameraIntrinsics {

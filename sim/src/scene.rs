@@ -182,6 +182,12 @@ pub struct RobotSpec {
     pub id: String,
     pub model: IiwaModel,
     pub camera: CameraSpec,
+    /// What the camera's own calibration says (a RealSense's factory intrinsics),
+    /// when that is not the truth: the cart publishes it with every frame and
+    /// `sim generate` writes it into `dataset.json`; the images are rendered through
+    /// `camera`. Absent: the camera reports the truth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reported_camera: Option<CameraSpec>,
     /// `T_flange_camera` (camera optical frame: x right, y down, z forward).
     pub flange_from_camera: PoseSpec,
     #[serde(default)]
@@ -666,26 +672,46 @@ impl Scene {
 
     /// Robot `i`'s camera model.
     pub fn camera(&self, i: usize) -> Result<b2b_calib::camera::CameraModel, SimError> {
-        let c = &self.robots[i].camera;
-        if c.width == 0 || c.height == 0 || c.width > 8192 || c.height > 8192 {
-            return Err(SimError::invalid(
-                "camera",
-                format!("size {}x{}", c.width, c.height),
-            ));
-        }
-        if c.dist.len() > 5 {
-            return Err(SimError::invalid(
-                "camera",
-                "dist takes at most k1, k2, p1, p2, k3",
-            ));
-        }
-        Ok(b2b_calib::camera::CameraModel::new(
-            c.width,
-            c.height,
-            [c.fx, c.fy, c.cx, c.cy],
-            &c.dist,
-        )?)
+        camera_model(&self.robots[i].camera)
     }
+
+    /// The intrinsics robot `i`'s camera reports ([`RobotSpec::reported_camera`],
+    /// else the true ones).
+    pub fn reported_camera(&self, i: usize) -> Result<b2b_calib::camera::CameraModel, SimError> {
+        let r = &self.robots[i];
+        let reported = r.reported_camera.as_ref().unwrap_or(&r.camera);
+        if (reported.width, reported.height) != (r.camera.width, r.camera.height) {
+            return Err(SimError::invalid(
+                "reported_camera",
+                format!(
+                    "size {}x{}, the camera renders {}x{}",
+                    reported.width, reported.height, r.camera.width, r.camera.height
+                ),
+            ));
+        }
+        camera_model(reported)
+    }
+}
+
+fn camera_model(c: &CameraSpec) -> Result<b2b_calib::camera::CameraModel, SimError> {
+    if c.width == 0 || c.height == 0 || c.width > 8192 || c.height > 8192 {
+        return Err(SimError::invalid(
+            "camera",
+            format!("size {}x{}", c.width, c.height),
+        ));
+    }
+    if c.dist.len() > 5 {
+        return Err(SimError::invalid(
+            "camera",
+            "dist takes at most k1, k2, p1, p2, k3",
+        ));
+    }
+    Ok(b2b_calib::camera::CameraModel::new(
+        c.width,
+        c.height,
+        [c.fx, c.fy, c.cx, c.cy],
+        &c.dist,
+    )?)
 }
 
 #[cfg(test)]

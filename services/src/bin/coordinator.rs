@@ -48,6 +48,12 @@ enum Command {
         /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
         #[arg(long)]
         out: PathBuf,
+        /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
+        /// k1, k2, p1, p2, k3) with the hand-eyes and base-to-base, starting from the
+        /// intrinsics each capture carries (the camera's own, e.g. a RealSense's
+        /// factory calibration, which can be slightly off).
+        #[arg(long)]
+        refine_intrinsics: bool,
         #[command(flatten)]
         noise: RobotNoiseArgs,
         #[command(flatten)]
@@ -194,18 +200,26 @@ fn main() -> std::process::ExitCode {
             state_dir,
             robots,
             out,
+            refine_intrinsics,
             noise,
             rerun,
         } => {
             let recorder = rerun.recorder("b2b-coordinator")?;
             let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
+            anyhow::ensure!(
+                !(refine_intrinsics && method == B2bMethod::Rgbd),
+                "--refine-intrinsics is for --method board or multimarker (the rgbd method uses the given intrinsics)"
+            );
             let stop = stop_flag();
             let opts = b2b_services::coordinator::RunOptions {
                 zenoh,
                 state_dir,
                 robots: 2,
                 order: robots.clone(),
-                refine: noise.options()?,
+                refine: b2b_calib::refine::RefineOptions {
+                    refine_intrinsics,
+                    ..noise.options()?
+                },
                 method,
                 rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
             };
