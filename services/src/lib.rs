@@ -19,12 +19,20 @@ use anyhow::Context;
 /// Logs to stderr, `RUST_LOG` overriding the default level (warn).
 pub fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        // Colour only on a terminal: a log written to a file or a pipe stays text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
 }
+
+/// What the binaries log without `RUST_LOG`: warnings, except zenoh's "Scouting
+/// delay elapsed before start conditions are met", which a peer prints whenever it
+/// starts before the others (the coordinator usually does); the services say
+/// themselves whom they wait for.
+pub const DEFAULT_LOG_FILTER: &str = "warn,zenoh::net::runtime::orchestrator=error";
 
 /// Writes a value as pretty JSON, creating the parent folder.
 pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> anyhow::Result<()> {
@@ -183,4 +191,31 @@ pub fn run_main(body: impl FnOnce() -> anyhow::Result<()>) -> std::process::Exit
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// Every argument of `cmd` and its visible subcommands that has no help text, as
+/// "subcommand --flag" (the binaries' tests require none).
+pub fn undocumented_args(cmd: &clap::Command) -> Vec<String> {
+    fn walk(cmd: &clap::Command, path: &str, out: &mut Vec<String>) {
+        for arg in cmd.get_arguments() {
+            let id = arg.get_id().as_str();
+            if arg.is_hide_set() || id == "help" || id == "version" {
+                continue;
+            }
+            if arg.get_help().is_none() && arg.get_long_help().is_none() {
+                let name = arg
+                    .get_long()
+                    .map_or_else(|| id.to_owned(), |l| format!("--{l}"));
+                out.push(format!("{path} {name}").trim().to_owned());
+            }
+        }
+        for sub in cmd.get_subcommands() {
+            if !sub.is_hide_set() {
+                walk(sub, &format!("{path} {}", sub.get_name()), out);
+            }
+        }
+    }
+    let mut out = vec![];
+    walk(cmd, "", &mut out);
+    out
 }

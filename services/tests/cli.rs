@@ -288,3 +288,28 @@ fn calibrate_and_handeye_without_intrinsics() {
         serde_json::from_str(&std::fs::read_to_string(&he).unwrap()).unwrap();
     assert_eq!(h.per_capture.len(), 8);
 }
+
+/// Logs written to a pipe or a file carry no terminal colour codes (they did: a
+/// log file full of `ESC[2m`).
+#[test]
+fn logs_to_a_pipe_have_no_colour_codes() {
+    // Without intrinsics, calibrate logs (info) the camera it estimated.
+    let ds = without_camera(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12"),
+    );
+    let out = coordinator()
+        .env("RUST_LOG", "info")
+        .args(["calibrate", "--dataset"])
+        .arg(ds.path())
+        .arg("--out")
+        .arg(ds.path().join("RESULT.json"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("INFO"), "no log lines to check: {stderr}");
+    assert!(
+        !stderr.contains('\u{1b}'),
+        "colour codes in a piped log: {stderr}"
+    );
+}

@@ -72,6 +72,7 @@ enum Command {
     /// move, settle, capture, re-centre the board in a closed loop, stop when the
     /// hand-eye is good enough; every capture is published as it is taken.
     Auto {
+        /// This cart's robot id (robot1, robot2, ...): the key its messages go under.
         #[arg(long)]
         robot: String,
         /// Simulated cart from a scene file.
@@ -92,12 +93,17 @@ enum Command {
         /// ... with at least this many good captures.
         #[arg(long, default_value_t = 20)]
         min_good: usize,
+        /// zenoh configuration file (JSON5); default: loopback peer connecting to
+        /// the coordinator on tcp/127.0.0.1:7447.
         #[arg(long)]
         zenoh: Option<PathBuf>,
+        /// Where the agent keeps its sequence number.
         #[arg(long, default_value = "agent-state")]
         state_dir: PathBuf,
+        /// Seconds to wait for the coordinator's result after the last capture.
         #[arg(long, default_value_t = 600)]
         wait_result_s: u64,
+        /// No progress bar.
         #[arg(long)]
         quiet: bool,
         #[command(flatten)]
@@ -571,4 +577,15 @@ fn main() -> std::process::ExitCode {
             Ok(())
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    #[test]
+    fn every_flag_has_help() {
+        let missing = b2b_services::undocumented_args(&super::Cli::command());
+        assert!(missing.is_empty(), "flags without help: {missing:?}");
+    }
 }

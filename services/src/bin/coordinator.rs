@@ -62,6 +62,7 @@ enum Command {
     /// base1_from_base2 from a two-robot b2b-dataset/1 folder (never reads
     /// ground_truth.json or reference.json).
     Calibrate {
+        /// The b2b-dataset/1 folder (dataset.json, robotN/captures.csv, images).
         #[arg(long)]
         dataset: PathBuf,
         /// board, multimarker or rgbd (default: from the dataset's target kind).
@@ -88,8 +89,11 @@ enum Command {
     },
     /// Checks a result against pointer-tip touch pairs (touch_points.csv format).
     Verify {
+        /// The RESULT.json to check (from run or calibrate).
         #[arg(long)]
         result: PathBuf,
+        /// Pointer-tip touch pairs (CSV: each row a point touched by both robots,
+        /// in each robot's base; shared/dataset-format.md).
         #[arg(long = "touch-points")]
         touch_points: PathBuf,
         /// Also write the metrics as JSON.
@@ -105,6 +109,7 @@ enum Command {
     /// error distributions, touch errors against the predicted bound, view
     /// coverage, rejected captures, and the numbers.
     Report {
+        /// The RESULT.json to report on.
         #[arg(long)]
         result: PathBuf,
         /// verify --json output.
@@ -383,4 +388,15 @@ fn main() -> std::process::ExitCode {
             Ok(())
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    #[test]
+    fn every_flag_has_help() {
+        let missing = b2b_services::undocumented_args(&super::Cli::command());
+        assert!(missing.is_empty(), "flags without help: {missing:?}");
+    }
 }
