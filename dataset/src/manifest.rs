@@ -155,6 +155,9 @@ impl Manifest {
 
     /// Parses manifest text; `file` is only used in errors. Does not range-check.
     pub fn parse(text: &str, file: &Path) -> Result<Manifest, DatasetError> {
+        // A UTF-8 byte order mark (editors on Windows write one) is not JSON, but it
+        // is not the user's data either: accepted here as in the CSV files.
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
         let value: serde_json::Value =
             serde_json::from_str(text).map_err(|e| DatasetError::json(file, e))?;
         let Some(object) = value.as_object() else {
@@ -511,6 +514,16 @@ mod tests {
         };
         let e = t.validate(&file()).unwrap_err();
         assert!(e.to_string().contains("DICT_4X4_50 has 50"), "{e}");
+    }
+
+    #[test]
+    fn a_byte_order_mark_is_accepted_as_in_csv_files() {
+        let text = r#"{"format": "b2b-dataset/1", "name": "n",
+            "target": {"kind": "checkerboard", "inner_corners": [9, 6], "square_m": 0.025},
+            "robots": [{"id": "robot1"}]}"#;
+        let plain = Manifest::parse(text, &file()).unwrap();
+        let with_bom = Manifest::parse(&format!("\u{feff}{text}"), &file()).unwrap();
+        assert_eq!(plain, with_bom);
     }
 
     #[test]
