@@ -20,6 +20,10 @@ use crate::table::{self, Row, Table};
 pub const CAPTURE_COLUMNS: [&str; 9] = ["image", "depth", "tx", "ty", "tz", "qx", "qy", "qz", "qw"];
 /// The optional board-pose block of `captures.csv` (`T_camera_target`).
 pub const CAMERA_POSE_COLUMNS: [&str; 7] = ["ctx", "cty", "ctz", "cqx", "cqy", "cqz", "cqw"];
+/// The optional first column of `touch_points.csv`: which physical location a touch
+/// touched.
+pub const LOCATION_COLUMN: &str = "location";
+
 /// The columns of `touch_points.csv`.
 pub const TOUCH_COLUMNS: [&str; 6] = ["x1", "y1", "z1", "x2", "y2", "z2"];
 
@@ -56,6 +60,9 @@ pub struct RobotData {
 pub struct TouchPair {
     /// 1-based data row.
     pub row: usize,
+    /// The optional `location` column: touches with the same text touched the same
+    /// physical location (repeated touches give ISO 9283 AP and RP in `verify`).
+    pub location: Option<String>,
     pub tip1_in_base1: Point3<f64>,
     pub tip2_in_base2: Point3<f64>,
 }
@@ -279,7 +286,7 @@ pub fn read_touch_points(file: &Path) -> Result<Vec<TouchPair>, DatasetError> {
         "expected a touch-points CSV with header x1,y1,z1,x2,y2,z2",
     )?;
     let table = table::parse_table(&bytes, file)?;
-    let columns = table::map_columns(&table, &TOUCH_COLUMNS, &[])?;
+    let columns = table::map_columns(&table, &TOUCH_COLUMNS, &[LOCATION_COLUMN])?;
     let mut pairs = Vec::with_capacity(table.rows.len());
     for row in &table.rows {
         table::check_field_count(&table, row)?;
@@ -287,8 +294,21 @@ pub fn read_touch_points(file: &Path) -> Result<Vec<TouchPair>, DatasetError> {
         for k in 0..6 {
             v[k] = table::number(file, row, columns.required[k], TOUCH_COLUMNS[k])?;
         }
+        let location = match &columns.block {
+            Some(idx) => {
+                let text = row.fields[idx[0]].trim();
+                if text.is_empty() {
+                    return Err(DatasetError::EmptyLocation {
+                        at: row.at(file, LOCATION_COLUMN),
+                    });
+                }
+                Some(text.to_owned())
+            }
+            None => None,
+        };
         let pair = TouchPair {
             row: row.row,
+            location,
             tip1_in_base1: Point3::new(v[0], v[1], v[2]),
             tip2_in_base2: Point3::new(v[3], v[4], v[5]),
         };

@@ -209,6 +209,11 @@ pub enum DatasetError {
     MissingDepth { at: Location, missing: PathBuf },
 
     /// A capture with neither an image nor a board pose: nothing to calibrate from.
+    #[error(
+        "{at}: the location is empty; give every touch of one physical location the same \
+         text, or leave the column out"
+    )]
+    EmptyLocation { at: Location },
     #[error("{at}: the row has neither an image nor the board pose columns ctx..cqw")]
     NoObservation { at: Location },
 
@@ -259,6 +264,7 @@ impl DatasetError {
             | MissingImage { at, .. }
             | MissingDepth { at, .. }
             | NoObservation { at }
+            | EmptyLocation { at }
             | PartialCameraPose { at }
             | DepthWithoutUnit { at, .. }
             | BadPath { at, .. }

@@ -36,8 +36,8 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 pub use captures::{
-    CAMERA_POSE_COLUMNS, CAPTURE_COLUMNS, Capture, IMAGE_EXTENSIONS, RobotData, TOUCH_COLUMNS,
-    TouchPair, read_touch_points,
+    CAMERA_POSE_COLUMNS, CAPTURE_COLUMNS, Capture, IMAGE_EXTENSIONS, LOCATION_COLUMN, RobotData,
+    TOUCH_COLUMNS, TouchPair, read_touch_points,
 };
 pub use error::{DatasetError, Location};
 pub use manifest::{
@@ -172,18 +172,34 @@ impl Dataset {
                     robots: self.manifest.robots.len(),
                 });
             }
+            let with_location = pairs.iter().any(|p| p.location.is_some());
             let mut rows = Vec::with_capacity(pairs.len());
             for (i, pair) in pairs.iter().enumerate() {
                 captures::check_touch(&touch_file, i + 1, None, pair)?;
-                rows.push(
-                    captures::touch_numbers(pair)
-                        .map(pose::format_number)
-                        .to_vec(),
-                );
+                let mut row = Vec::with_capacity(7);
+                if with_location {
+                    match pair.location.as_deref().map(str::trim) {
+                        Some(l) if !l.is_empty() => row.push(l.to_owned()),
+                        _ => {
+                            return Err(DatasetError::EmptyLocation {
+                                at: Location::cell(&touch_file, i + 1, None, LOCATION_COLUMN),
+                            });
+                        }
+                    }
+                }
+                row.extend(captures::touch_numbers(pair).map(pose::format_number));
+                rows.push(row);
             }
+            let header: Vec<&str> = if with_location {
+                std::iter::once(LOCATION_COLUMN)
+                    .chain(TOUCH_COLUMNS)
+                    .collect()
+            } else {
+                TOUCH_COLUMNS.to_vec()
+            };
             files.push((
                 touch_file.clone(),
-                table::render(&touch_file, &TOUCH_COLUMNS, &rows)?,
+                table::render(&touch_file, &header, &rows)?,
             ));
         }
         let mut json = serde_json::to_string_pretty(&self.manifest)

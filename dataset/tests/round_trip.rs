@@ -96,11 +96,13 @@ fn dataset(target: Target) -> Dataset {
         ],
         touch_points: Some(vec![
             TouchPair {
+                location: Some("tip A".into()),
                 row: 1,
                 tip1_in_base1: Point3::new(0.612, 0.034, 0.081),
                 tip2_in_base2: Point3::new(0.402, -0.221, 0.079),
             },
             TouchPair {
+                location: Some("tip A".into()),
                 row: 2,
                 tip1_in_base1: Point3::new(1.0 / 3.0, -0.0, 5e-324),
                 tip2_in_base2: Point3::new(-9.999_999_999_999_998, 2.0 / 7.0, 0.1 + 0.2),

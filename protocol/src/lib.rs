@@ -259,6 +259,25 @@ pub struct VerifyReport {
     pub procrustes_linear_error_mm: f64,
     pub procrustes_angular_error_deg: f64,
     pub within_predicted_p95: f64,
+    /// Per location touched more than once (the touch file's `location` column):
+    /// ISO 9283 pose accuracy and repeatability of robot 2's touches mapped into
+    /// `base1`, against robot 1's mean touch of that location. Empty (and left out
+    /// of the JSON) without repeated locations.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub iso9283: Vec<LocationIso9283>,
+}
+
+/// ISO 9283 figures of one repeatedly touched location.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LocationIso9283 {
+    pub location: String,
+    /// Touches of this location.
+    pub n: usize,
+    /// AP: robot 2's barycentre (in `base1`, through the result) to robot 1's mean touch, mm.
+    pub accuracy_mm: f64,
+    /// RP: mean distance of robot 2's touches to their barycentre plus three standard
+    /// deviations, mm.
+    pub repeatability_mm: f64,
 }
 
 pub mod messages;

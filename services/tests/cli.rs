@@ -313,3 +313,62 @@ fn logs_to_a_pipe_have_no_colour_codes() {
         "colour codes in a piped log: {stderr}"
     );
 }
+
+/// A touch file whose `location` column repeats locations: `verify` reports ISO 9283
+/// AP and RP per location, printed and in its JSON (the committed touches, each
+/// touched twice).
+#[test]
+fn verify_reports_iso_9283_for_repeated_locations() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
+    let result = tmp.path().join("RESULT.json");
+    let out = coordinator()
+        .args(["calibrate", "--dataset"])
+        .arg(&ds)
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = std::fs::read_to_string(ds.join("touch_points.csv")).unwrap();
+    let mut lines = text.lines();
+    let mut csv = format!("location,{}\n", lines.next().unwrap());
+    let rows: Vec<&str> = lines.filter(|l| !l.trim().is_empty()).collect();
+    for (k, row) in rows.iter().enumerate() {
+        csv.push_str(&format!("point {k},{row}\npoint {k},{row}\n"));
+    }
+    let touches = tmp.path().join("touch_points.csv");
+    std::fs::write(&touches, csv).unwrap();
+    let json = tmp.path().join("VERIFY.json");
+    let out = coordinator()
+        .args(["verify", "--result"])
+        .arg(&result)
+        .arg("--touch-points")
+        .arg(&touches)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains("ISO 9283, location point 0 (2 touches): AP "),
+        "{stdout}"
+    );
+    let v: b2b_protocol::VerifyReport =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v.iso9283.len(), rows.len());
+    for l in &v.iso9283 {
+        // Both touches of a location are the same row: no spread, and the accuracy
+        // is that row's touch error.
+        assert!(l.repeatability_mm.abs() < 1e-9, "{l:?}");
+        assert!(
+            l.accuracy_mm > 0.0 && l.accuracy_mm < v.touch_max_mm + 1e-9,
+            "{l:?}"
+        );
+    }
+}

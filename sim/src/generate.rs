@@ -447,6 +447,7 @@ fn touches(
         }
         if ok {
             out.push(TouchPair {
+                location: None,
                 row: out.len() + 1,
                 tip1_in_base1: tips[0],
                 tip2_in_base2: tips[1],

@@ -330,6 +330,12 @@ fn main() -> std::process::ExitCode {
                 "within predicted 95% bound: {:.0}%",
                 report.within_predicted_p95 * 100.0
             );
+            for l in &report.iso9283 {
+                println!(
+                    "ISO 9283, location {} ({} touches): AP {:.3} mm, RP {:.3} mm",
+                    l.location, l.n, l.accuracy_mm, l.repeatability_mm
+                );
+            }
             if let Some(path) = json {
                 write_json(&path, &report)?;
                 println!("wrote {}", path.display());
