@@ -5,6 +5,9 @@ pub enum CalibError {
     /// Fewer captures (or points) than the method needs.
     #[error("too few captures: {got}, need at least {need}")]
     TooFewCaptures { got: usize, need: usize },
+    /// Fewer touch pairs (or touches of one location) than a check needs.
+    #[error("too few touch pairs: {got}, need at least {need}")]
+    TooFewTouches { got: usize, need: usize },
     /// Two inputs that need one entry each per capture (or point) differ in length.
     #[error("inconsistent input: {len_a} {what_a} but {len_b} {what_b}")]
     MismatchedLengths {

@@ -125,7 +125,7 @@ pub fn verify_touches(
     tip_sigma_m: f64,
 ) -> Result<TouchMetrics, CalibError> {
     if touches.len() < 3 {
-        return Err(CalibError::TooFewCaptures {
+        return Err(CalibError::TooFewTouches {
             got: touches.len(),
             need: 3,
         });
@@ -184,7 +184,7 @@ pub struct Iso9283 {
 pub fn iso9283(commanded: &Point3<f64>, attained: &[Point3<f64>]) -> Result<Iso9283, CalibError> {
     let n = attained.len();
     if n < 2 {
-        return Err(CalibError::TooFewCaptures { got: n, need: 2 });
+        return Err(CalibError::TooFewTouches { got: n, need: 2 });
     }
     let bary = Point3::from(attained.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n as f64);
     let l: Vec<f64> = attained.iter().map(|p| (p - bary).norm()).collect();
@@ -267,6 +267,8 @@ mod tests {
     #[test]
     fn too_few_touches_is_an_error() {
         let t = vec![(Point3::origin(), Point3::origin()); 2];
-        assert!(verify_touches(&Iso3::identity(), &Matrix6::zeros(), &t, 0.0).is_err());
+        let e = verify_touches(&Iso3::identity(), &Matrix6::zeros(), &t, 0.0).unwrap_err();
+        // Worded as touches, not captures.
+        assert_eq!(e.to_string(), "too few touch pairs: 2, need at least 3");
     }
 }

@@ -72,7 +72,7 @@ fn bad_method_is_named() {
             .arg(&ds)
             .args(["--robot", "robot1", "--method", "magic", "--out"])
             .arg(tmp.path().join("h.json")),
-        "magic",
+        "invalid value 'magic' for '--method <METHOD>'\n  [possible values: tsai, park, horaud, andreff, daniilidis, shah, li, refined]",
     );
     fails_cleanly(
         coordinator()
@@ -80,7 +80,7 @@ fn bad_method_is_named() {
             .arg(&ds)
             .args(["--method", "magic", "--out"])
             .arg(tmp.path().join("r.json")),
-        "magic",
+        "invalid value 'magic' for '--method <METHOD>'\n  [possible values: board, multimarker, rgbd]",
     );
 }
 

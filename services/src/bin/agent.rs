@@ -138,7 +138,11 @@ enum Command {
         robot: String,
         /// tsai, park, horaud, andreff, daniilidis, shah, li or refined (joint
         /// reprojection-error refinement seeded by Park).
-        #[arg(long, default_value = "refined")]
+        #[arg(
+            long,
+            default_value = "refined",
+            value_parser = ["tsai", "park", "horaud", "andreff", "daniilidis", "shah", "li", "refined"]
+        )]
         method: String,
         /// Also refine the camera intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3).
         /// A robot without intrinsics in dataset.json always gets them estimated

@@ -33,7 +33,7 @@ enum Command {
     Run {
         /// board, multimarker or rgbd (rgbd: the agents publish features with
         /// `agent run --features`, and their board observations give the hand-eyes).
-        #[arg(long, default_value = "board")]
+        #[arg(long, default_value = "board", value_parser = ["board", "multimarker", "rgbd"])]
         method: String,
         /// zenoh configuration file (JSON5); default: loopback peer listening on
         /// tcp/127.0.0.1:7447.
@@ -66,7 +66,7 @@ enum Command {
         #[arg(long)]
         dataset: PathBuf,
         /// board, multimarker or rgbd (default: from the dataset's target kind).
-        #[arg(long)]
+        #[arg(long, value_parser = ["board", "multimarker", "rgbd"])]
         method: Option<String>,
         /// rgbd only: each robot's HANDEYE.json (`agent handeye`, from an earlier
         /// calibration; matched by its robot id) instead of a hand-eye from the
