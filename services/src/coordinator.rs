@@ -163,6 +163,9 @@ pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationR
     Ok(out)
 }
 
+/// How often `run` says whom it is still waiting for (stderr).
+pub const WAIT_REPORT_PERIOD: Duration = Duration::from_secs(10);
+
 /// [`run`] on any bus.
 pub fn run_on(
     bus: &dyn Bus,
@@ -182,9 +185,19 @@ pub fn run_on(
     let mut counters = Counters::default();
     catch_up(bus, &mut store, &mut counters, &agent_key("*", "history"))?;
     let mut last_check = Instant::now();
+    let mut last_report = Instant::now();
     loop {
         if store.complete(opts.robots) || stop.load(Ordering::SeqCst) {
             break;
+        }
+        if last_report.elapsed() >= WAIT_REPORT_PERIOD {
+            last_report = Instant::now();
+            eprintln!(
+                "coordinator: waiting for {}",
+                store
+                    .waiting_for(opts.order.as_deref(), opts.robots)
+                    .join("; ")
+            );
         }
         if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))? {
             handle(&mut store, &mut counters, &m.key, &m.payload)?;

@@ -175,6 +175,44 @@ impl Store {
             .collect()
     }
 
+    /// Who the coordinator is still waiting for, one phrase per robot not yet done
+    /// ("robot2: not heard from", "robot1: capturing, 12 captures held"): the
+    /// `expected` ids, or those heard from, padded with "N more robots" to `robots`.
+    pub fn waiting_for(&self, expected: Option<&[String]>, robots: usize) -> Vec<String> {
+        let heard = self.robots();
+        let ids: Vec<String> = match expected {
+            Some(ids) => ids.to_vec(),
+            None => heard.clone(),
+        };
+        let mut out: Vec<String> = ids
+            .iter()
+            .filter_map(|r| {
+                let held = self.capture_count(r);
+                match self.status(r) {
+                    None if held == 0 => Some(format!("{r}: not heard from")),
+                    None => Some(format!("{r}: no status yet, {held} captures held")),
+                    Some(s) if s.state == AgentState::Finished && s.published == held => None,
+                    Some(s) if s.state == AgentState::Finished => Some(format!(
+                        "{r}: finished, {held} of its {} captures held (asking for the rest)",
+                        s.published
+                    )),
+                    Some(s) => Some(format!(
+                        "{r}: {}, {held} captures held",
+                        format!("{:?}", s.state).to_lowercase()
+                    )),
+                }
+            })
+            .collect();
+        if expected.is_none() && heard.len() < robots {
+            let more = robots - heard.len();
+            out.push(format!(
+                "{more} more robot{} not heard from",
+                if more == 1 { "" } else { "s" }
+            ));
+        }
+        out
+    }
+
     /// At least `robots` agents heard from, all finished, every capture held.
     pub fn complete(&self, robots: usize) -> bool {
         let ids = self.robots();
@@ -398,6 +436,49 @@ mod tests {
             o.target_points = vec![corner; 4];
         }
         c
+    }
+
+    #[test]
+    fn says_whom_it_waits_for() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        assert_eq!(s.waiting_for(None, 2), ["2 more robots not heard from"]);
+        let ids = ["robot1".to_owned(), "robot2".to_owned()];
+        assert_eq!(
+            s.waiting_for(Some(&ids), 2),
+            ["robot1: not heard from", "robot2: not heard from"]
+        );
+        s.accept(Sample::Capture(Envelope::new("robot1", 1, capture(0))))
+            .unwrap();
+        s.accept(Sample::Status(Envelope::new(
+            "robot1",
+            2,
+            status(AgentState::Capturing, 1),
+        )))
+        .unwrap();
+        s.accept(Sample::Status(Envelope::new(
+            "robot2",
+            1,
+            status(AgentState::Finished, 3),
+        )))
+        .unwrap();
+        assert_eq!(
+            s.waiting_for(Some(&ids), 2),
+            [
+                "robot1: capturing, 1 captures held",
+                "robot2: finished, 0 of its 3 captures held (asking for the rest)"
+            ]
+        );
+        s.accept(Sample::Status(Envelope::new(
+            "robot1",
+            3,
+            status(AgentState::Finished, 1),
+        )))
+        .unwrap();
+        assert_eq!(
+            s.waiting_for(None, 2),
+            ["robot2: finished, 0 of its 3 captures held (asking for the rest)"]
+        );
     }
 
     #[test]
