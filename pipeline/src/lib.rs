@@ -571,23 +571,18 @@ impl TargetSpec {
         camera: &CameraModel,
         up_to_symmetry: bool,
     ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
-        let det = match self {
-            TargetSpec::Checkerboard(s) if up_to_symmetry => {
-                b2b_vision::detect_checkerboard_up_to_symmetry(img, s)?.0
-            }
-            TargetSpec::Checkerboard(s) => b2b_vision::detect_checkerboard(img, s)?,
-            TargetSpec::Charuco(s) => b2b_vision::detect_charuco(img, s, camera)?,
-            TargetSpec::ArucoGrid(s) => b2b_vision::detect_aruco_grid(img, s)?,
-            TargetSpec::Multimarker { config, dictionary } => {
-                let m = b2b_vision::detect_multimarker(img, config, dictionary, camera)?;
-                let pose = PoseEstimate {
-                    camera_from_target: m.camera_from_target,
-                    residuals_px: m.residuals_px,
-                    rms_px: m.rms_px,
-                };
-                return Ok((m.detection, pose));
-            }
-        };
+        // A multimarker set's detector fits its own pose (over every marker seen);
+        // boards go through the one corner detection and PnP.
+        if let TargetSpec::Multimarker { config, dictionary } = self {
+            let m = b2b_vision::detect_multimarker(img, config, dictionary, camera)?;
+            let pose = PoseEstimate {
+                camera_from_target: m.camera_from_target,
+                residuals_px: m.residuals_px,
+                rms_px: m.rms_px,
+            };
+            return Ok((m.detection, pose));
+        }
+        let det = self.detect_corners_impl(img, camera, up_to_symmetry)?;
         let pose = b2b_vision::board_pose(&det, camera)?;
         Ok((det, pose))
     }

@@ -240,11 +240,12 @@ fn far_upright_symmetric_board_without_intrinsics() {
         eprintln!("{}", cam.describe());
         let c = &cam.camera;
         assert!(cam.estimated.is_some());
-        // Measured (seed 7): f within 0.1 px, the centre within 0.6 px.
-        assert!((c.fx - 912.3).abs() < 0.003 * 912.3, "fx {}", c.fx);
-        assert!((c.fy - 911.8).abs() < 0.003 * 911.8, "fy {}", c.fy);
-        assert!((c.cx - 641.2).abs() < 3.0, "cx {}", c.cx);
-        assert!((c.cy - 362.5).abs() < 3.0, "cy {}", c.cy);
+        // Measured (seed 7, deterministic): f within 0.1 px, the centre within
+        // 0.72 px; 1.5x of each here.
+        assert!((c.fx - 912.3).abs() < 0.15, "fx {}", c.fx);
+        assert!((c.fy - 911.8).abs() < 0.15, "fy {}", c.fy);
+        assert!((c.cx - 641.2).abs() < 1.1, "cx {}", c.cx);
+        assert!((c.cy - 362.5).abs() < 1.1, "cy {}", c.cy);
     }
     let est = result.base1_from_base2.to_isometry("T").unwrap();
     let true_b2b = truth.base1_from_base2.unwrap();

@@ -64,19 +64,6 @@ impl LiveTarget {
         }
     }
 
-    /// A checkerboard of `cols` x `rows` inner corners.
-    pub fn checkerboard(cols: usize, rows: usize, square_m: f64) -> anyhow::Result<Self> {
-        let spec = b2b_vision::CheckerboardSpec {
-            cols,
-            rows,
-            square_m,
-        };
-        spec.validate()?;
-        Ok(LiveTarget::new(b2b_pipeline::TargetSpec::Checkerboard(
-            spec,
-        )))
-    }
-
     /// The board centre every message and plan uses ([`b2b_pipeline::TargetSpec::centre`]).
     pub fn centre(&self) -> Point3<f64> {
         self.spec.centre()

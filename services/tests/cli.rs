@@ -101,11 +101,11 @@ fn malformed_result_file_is_named() {
     );
 }
 
-#[test]
-fn calibrate_then_verify_writes_conforming_files() {
-    let tmp = tempfile::tempdir().unwrap();
+/// `coordinator calibrate` on the committed checkerboard set into `dir`: the
+/// dataset folder and the RESULT.json written.
+fn calibrate_committed(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
-    let result = tmp.path().join("RESULT.json");
+    let result = dir.join("RESULT.json");
     let out = coordinator()
         .args(["calibrate", "--dataset"])
         .arg(&ds)
@@ -118,6 +118,13 @@ fn calibrate_then_verify_writes_conforming_files() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    (ds, result)
+}
+
+#[test]
+fn calibrate_then_verify_writes_conforming_files() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ds, result) = calibrate_committed(tmp.path());
     let json = tmp.path().join("VERIFY.json");
     let out = coordinator()
         .args(["verify", "--result"])
@@ -320,16 +327,7 @@ fn logs_to_a_pipe_have_no_colour_codes() {
 #[test]
 fn verify_reports_iso_9283_for_repeated_locations() {
     let tmp = tempfile::tempdir().unwrap();
-    let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
-    let result = tmp.path().join("RESULT.json");
-    let out = coordinator()
-        .args(["calibrate", "--dataset"])
-        .arg(&ds)
-        .arg("--out")
-        .arg(&result)
-        .output()
-        .unwrap();
-    assert!(out.status.success());
+    let (ds, result) = calibrate_committed(tmp.path());
     let text = std::fs::read_to_string(ds.join("touch_points.csv")).unwrap();
     let mut lines = text.lines();
     let mut csv = format!("location,{}\n", lines.next().unwrap());

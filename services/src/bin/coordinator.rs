@@ -195,6 +195,15 @@ fn rgbd_with_hand_eye_files(
     Ok(run.result)
 }
 
+/// `--refine-intrinsics` is for the methods that fit the cameras.
+fn check_refine_intrinsics(refine_intrinsics: bool, method: B2bMethod) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        !(refine_intrinsics && method == B2bMethod::Rgbd),
+        "--refine-intrinsics is for --method board or multimarker (the rgbd method uses the given intrinsics)"
+    );
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
@@ -211,10 +220,7 @@ fn main() -> std::process::ExitCode {
         } => {
             let recorder = rerun.recorder("b2b-coordinator")?;
             let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
-            anyhow::ensure!(
-                !(refine_intrinsics && method == B2bMethod::Rgbd),
-                "--refine-intrinsics is for --method board or multimarker (the rgbd method uses the given intrinsics)"
-            );
+            check_refine_intrinsics(refine_intrinsics, method)?;
             let stop = stop_flag();
             let opts = b2b_services::coordinator::RunOptions {
                 zenoh,
@@ -255,10 +261,7 @@ fn main() -> std::process::ExitCode {
                 Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
-            anyhow::ensure!(
-                !(refine_intrinsics && method == B2bMethod::Rgbd),
-                "--refine-intrinsics is for --method board or multimarker (the rgbd method uses the given intrinsics)"
-            );
+            check_refine_intrinsics(refine_intrinsics, method)?;
             let mut cameras = Vec::new();
             let result = if hand_eye.is_empty() {
                 let options = b2b_calib::refine::RefineOptions {
