@@ -56,7 +56,9 @@ use std::str::FromStr;
 use std::time::Instant;
 
 use b2b_calib::camera::CameraModel;
-use b2b_calib::estimate::{Rejection, RobotCaptures, estimate_base_to_base, estimate_hand_eye};
+use b2b_calib::estimate::{
+    Rejection, RobotCaptures, SPLIT_SYSTEMATIC_CHI2, estimate_base_to_base, estimate_hand_eye,
+};
 use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
 use b2b_calib::refine::{BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye};
@@ -1666,6 +1668,20 @@ fn joint_base_to_base(
     });
     let pair = format!("{}+{}", obs1.robot, obs2.robot);
     let run = estimate_base_to_base([&captures[0], &captures[1]], options).map_err(calib(&pair))?;
+    if let Some(split) = run.split.filter(|s| s.chi2 > SPLIT_SYSTEMATIC_CHI2) {
+        let d = split.difference;
+        tracing::warn!(
+            chi2 = split.chi2,
+            "the captures on opposite sides of the board give base1_from_base2 {:.2} mm / {:.3}° apart, \
+             beyond their noise (chi-square {:.0} on 6 dof): a systematic robot error (kinematic \
+             parameters, a sagging base or mount); the bound includes the disagreement, but not \
+             the part common to all captures: give the arms' absolute accuracy \
+             (--robot-accuracy-mm, --robot-accuracy-deg) and check with touch points",
+            d.fixed_rows::<3>(3).norm() * 1e3,
+            d.fixed_rows::<3>(0).norm().to_degrees(),
+            split.chi2
+        );
+    }
     let joint = run.estimate;
     let (mean, p95) = predicted_error(
         &joint.covariance,
