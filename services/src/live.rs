@@ -23,6 +23,7 @@ use nalgebra::{Isometry3, Point2, Point3};
 
 use crate::agent::{CaptureSource, Progress, SourceCapture};
 use crate::plan::{Plan, PlanConfig, PlanScene, Viewpoint, plan_viewpoints, reach, recentre};
+use b2b_routine::{BoardInImage, Routine, Status, Step, View, VisitAction, VisitEvent};
 
 type Iso3 = Isometry3<f64>;
 
@@ -115,49 +116,7 @@ impl LiveTarget {
     }
 }
 
-/// What the live source does.
-#[derive(Debug, Clone)]
-pub enum LiveMode {
-    /// `agent run`: visit the planned viewpoints once, no re-centring, no early stop.
-    Program,
-    /// `agent auto`: the automatic pre-operative routine.
-    Auto(AutoConfig),
-}
-
-/// Settings of the automatic routine.
-#[derive(Debug, Clone)]
-pub struct AutoConfig {
-    /// Tries per viewpoint (the first one included).
-    pub max_tries: usize,
-    /// Re-centre when the board centre is further than this fraction of the image
-    /// size from the image centre.
-    pub off_centre: f64,
-    /// Stop when the hand-eye's 1-sigma translation (m) and rotation (rad) are below
-    /// these, with at least `min_good` captures.
-    pub stop_sigma_t_m: f64,
-    pub stop_sigma_r_rad: f64,
-    pub min_good: usize,
-    /// Reject a capture closer than this to an earlier one (m, rad).
-    pub similar_t_m: f64,
-    pub similar_r_rad: f64,
-    /// Reject a capture whose sharpness is below this fraction of the median so far.
-    pub blur_fraction: f64,
-}
-
-impl Default for AutoConfig {
-    fn default() -> Self {
-        AutoConfig {
-            max_tries: 4,
-            off_centre: 0.12,
-            stop_sigma_t_m: 0.1e-3,
-            stop_sigma_r_rad: 0.01f64.to_radians(),
-            min_good: 20,
-            similar_t_m: 5e-3,
-            similar_r_rad: 2f64.to_radians(),
-            blur_fraction: 0.3,
-        }
-    }
-}
+pub use b2b_routine::{Mode as LiveMode, RoutineConfig as AutoConfig};
 
 /// Settings of a live source.
 #[derive(Debug, Clone)]
@@ -201,16 +160,10 @@ pub struct LiveSource {
     target: LiveTarget,
     camera: Option<CameraModel>,
     plan: Option<Plan>,
-    next_viewpoint: usize,
     captured: u64,
-    board_estimate: Option<Iso3>,
-    /// The board pose the current plan was made for.
-    planned_for: Option<Iso3>,
-    plans: usize,
-    visited: usize,
-    sharpness: Vec<f64>,
+    /// The capture policy's decisions (sans I/O).
+    routine: Routine,
     timings: LiveTimings,
-    stopped_because: Option<String>,
 }
 
 impl std::fmt::Debug for LiveSource {
@@ -232,12 +185,6 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-/// A rotation angle and translation distance between two poses.
-fn pose_distance(a: &Iso3, b: &Iso3) -> (f64, f64) {
-    let d = a.inverse() * b;
-    (d.translation.vector.norm(), d.rotation.angle())
-}
-
 impl LiveSource {
     /// Connects: waits for the FRI session to reach COMMANDING_ACTIVE (the robot
     /// application's overlay) and for the first frame.
@@ -251,6 +198,7 @@ impl LiveSource {
     ) -> anyhow::Result<Self> {
         fri.wait_for_joints(Duration::from_secs(15))
             .context("no joint state from the FRI controller")?;
+        let routine = Routine::new(cfg.mode.clone(), cfg.plan.count);
         Ok(LiveSource {
             cfg,
             fri,
@@ -260,15 +208,9 @@ impl LiveSource {
             target,
             camera: None,
             plan: None,
-            next_viewpoint: 0,
             captured: 0,
-            board_estimate: None,
-            planned_for: None,
-            plans: 0,
-            visited: 0,
-            sharpness: vec![],
+            routine,
             timings: LiveTimings::default(),
-            stopped_because: None,
         })
     }
 
@@ -332,14 +274,11 @@ impl LiveSource {
         r
     }
 
-    /// Plans from the current pose. With `first_view`, the board estimate comes from
-    /// detecting the board where the arm stands now; otherwise from configuration.
-    fn make_plan(&mut self, first_view: bool) -> anyhow::Result<()> {
-        let count = self.cfg.plan.count;
-        self.make_plan_of(first_view, count)
-    }
-
-    fn make_plan_of(&mut self, first_view: bool, count: usize) -> anyhow::Result<()> {
+    /// Plans `count` viewpoints from the current pose, the ring starting at
+    /// `phase`. With `first_view`, the board estimate comes from detecting the
+    /// board where the arm stands now; otherwise from what the routine has seen,
+    /// or the configuration.
+    fn make_plan(&mut self, count: usize, first_view: bool, phase: f64) -> anyhow::Result<()> {
         let (frame, q, _) = self.still_frame()?;
         self.camera = Some(frame.camera.clone());
         let base_from_flange = self.arm.fk(&q);
@@ -348,10 +287,9 @@ impl LiveSource {
                 .target
                 .observe(&self.cfg.robot, &frame, base_from_flange, 0);
             match observed {
-                Ok(o) => {
-                    self.board_estimate =
-                        Some(base_from_flange * self.cfg.mount_approx * o.camera_from_target);
-                }
+                Ok(o) => self
+                    .routine
+                    .board_seen(base_from_flange * self.cfg.mount_approx * o.camera_from_target),
                 Err(r) => tracing::warn!(
                     "{}: no board in the first view ({}); planning from the configured board position",
                     self.cfg.robot,
@@ -361,7 +299,10 @@ impl LiveSource {
         }
         let started = Instant::now();
         let camera = frame.camera.clone();
-        let board = self.board_estimate.unwrap_or(self.cfg.board_approx);
+        let board = self
+            .routine
+            .board_estimate()
+            .unwrap_or(self.cfg.board_approx);
         let scene = PlanScene {
             arm: &self.arm,
             guard: &self.guard,
@@ -372,20 +313,18 @@ impl LiveSource {
             view_axis: self.target.spec.view_axis(),
         };
         let cfg = PlanConfig {
-            count: count.max(3),
-            phase: self.plans as f64 * 0.7,
+            count,
+            phase,
             ..self.cfg.plan.clone()
         };
         let plan = plan_viewpoints(&scene, &q, &cfg)?;
-        self.plans += 1;
-        self.planned_for = Some(board);
-        self.next_viewpoint = 0;
         self.timings.plan_ms += ms(started.elapsed());
         anyhow::ensure!(
             !plan.viewpoints.is_empty(),
             "no viewpoint of the board is reachable safely: {:?}",
             plan.dropped
         );
+        self.routine.planned(plan.viewpoints.len(), board);
         self.plan = Some(plan);
         Ok(())
     }
@@ -397,8 +336,14 @@ impl LiveSource {
 
     /// Plans without moving (`--dry-run`).
     pub fn plan_only(&mut self) -> anyhow::Result<&Plan> {
-        let first_view = matches!(self.cfg.mode, LiveMode::Auto(_));
-        self.make_plan(first_view)?;
+        if let Step::Plan {
+            count,
+            first_view,
+            phase,
+        } = self.routine.first_plan()
+        {
+            self.make_plan(count, first_view, phase)?;
+        }
         self.plan.as_ref().context("no plan")
     }
 
@@ -421,13 +366,15 @@ impl LiveSource {
             .base_from_target
             .last()
             .copied()
-            .or(self.board_estimate)
+            .or(self.routine.board_estimate())
             .unwrap_or(self.cfg.board_approx);
         let centre = self.target.centre();
         Some((base_from_flange * self.cfg.mount_approx).inverse() * (board * centre))
     }
 
-    /// One viewpoint: move, settle, capture, detect, decide (and re-centre in auto).
+    /// One viewpoint: the routine decides ([`Routine::step_visit`]); this does
+    /// what it asks (move, settle and capture, detect, re-centre) and tells it
+    /// what happened.
     fn visit(
         &mut self,
         v: &Viewpoint,
@@ -435,189 +382,170 @@ impl LiveSource {
         stop: &AtomicBool,
     ) -> anyhow::Result<SourceCapture> {
         let row = self.captured as usize + 1;
-        let auto = match &self.cfg.mode {
-            LiveMode::Auto(a) => Some(a.clone()),
-            LiveMode::Program => None,
-        };
-        let tries = auto.as_ref().map_or(1, |a| a.max_tries.max(1));
-        let mut target_q = v.q;
-        let mut last_reason = String::new();
-        for attempt in 0..tries {
+        let status = status(progress);
+        let (mut visit, mut action) = self.routine.visit(v.q);
+        // The last still frame: its capture, and the joints it was taken at.
+        let mut last: Option<(SourceCapture, Joints)> = None;
+        loop {
             anyhow::ensure!(!stop.load(Ordering::SeqCst), "interrupted");
-            if attempt > 0 {
-                self.timings.retries += 1;
-            }
-            if let Err(e) = self.move_to(target_q) {
-                last_reason = format!("motion refused or aborted: {e:#}");
-                break;
-            }
-            let (frame, q, controller_t) = match self.still_frame() {
-                Ok(x) => x,
-                Err(e) => {
-                    last_reason = format!("{e:#}");
-                    continue;
-                }
-            };
-            let camera = frame.camera.clone();
-            let base_from_flange = self.arm.fk(&q);
-            let detect_started = Instant::now();
-            let (observed, sharpness) =
-                self.target
-                    .observe(&self.cfg.robot, &frame, base_from_flange, row);
-            self.timings.detect_ms += ms(detect_started.elapsed());
-            let decide_started = Instant::now();
-            let features = match (&self.cfg.features, &frame.depth) {
-                (Some(options), Some((depth, unit))) => {
+            let event = match action {
+                VisitAction::MoveTo(q) => match self.move_to(q) {
+                    Ok(()) => VisitEvent::Moved,
+                    Err(e) => VisitEvent::MoveFailed(format!("{e:#}")),
+                },
+                VisitAction::Capture => match self.still_frame() {
+                    Ok((frame, q, controller_t)) => {
+                        let (capture, view) = self.look(&frame, &q, controller_t, row, progress);
+                        last = Some((capture, q));
+                        VisitEvent::Seen(view)
+                    }
+                    Err(e) => VisitEvent::NoFrame(format!("{e:#}")),
+                },
+                VisitAction::Recentre { centre_in_camera } => {
                     let started = Instant::now();
-                    let set = frame_features(&frame, depth, *unit, options);
-                    self.timings.detect_ms += ms(started.elapsed());
-                    set.map_err(|e| tracing::warn!("frame {}: no features: {e:#}", frame.number))
-                        .ok()
+                    let (capture, q) = last.as_ref().context("re-centring without a frame")?;
+                    let result = self.recentre(
+                        &capture.base_from_flange,
+                        &capture.camera,
+                        q,
+                        &centre_in_camera,
+                    );
+                    self.timings.decide_ms += ms(started.elapsed());
+                    VisitEvent::Recentred(result)
                 }
-                _ => None,
+                VisitAction::Deliver => {
+                    return last.map(|l| l.0).context("delivering without a frame");
+                }
+                VisitAction::Reject(reason) => {
+                    let (mut capture, _) = last.context("rejecting without a frame")?;
+                    capture.observed = Err(self.reject(row, reason));
+                    return Ok(capture);
+                }
+                VisitAction::GiveUp(reason) => {
+                    return Ok(SourceCapture {
+                        index: row as u64 - 1,
+                        image: None,
+                        base_from_flange: self.arm.fk(&self.measured()?),
+                        controller_time_s: None,
+                        camera: self.camera.clone().context("no camera intrinsics yet")?,
+                        observed: Err(self.reject(row, reason)),
+                        pixels: None,
+                        features: None,
+                        target_centre: self.target.centre(),
+                    });
+                }
             };
-            let capture = |observed| SourceCapture {
-                index: row as u64 - 1,
-                image: Some(format!("frame {}", frame.number)),
-                base_from_flange,
-                controller_time_s: Some(controller_t),
-                camera: camera.clone(),
-                observed,
-                pixels: Some(frame.grey.clone()),
-                features: features.clone(),
-                target_centre: self.target.centre(),
-            };
-            let Some(a) = &auto else {
-                self.timings.decide_ms += ms(decide_started.elapsed());
-                return Ok(capture(observed));
-            };
-            // Where is the board, and is it placed well?
-            let (centre_in_camera, badly_placed) = match &observed {
-                Ok(o) => {
-                    let n = o.board.pixels.len().max(1) as f64;
-                    let c = o
-                        .board
-                        .pixels
-                        .iter()
-                        .fold(Point2::origin(), |acc, p| acc + p.coords / n);
-                    let off = ((c.x - camera.cx) / camera.width as f64)
-                        .abs()
-                        .max(((c.y - camera.cy) / camera.height as f64).abs());
-                    let centre = self.target.centre();
-                    (
-                        Some(o.camera_from_target * centre),
-                        (off > a.off_centre).then(|| {
-                            format!("board off-centre by {:.0}% of the image", off * 100.0)
-                        }),
-                    )
-                }
-                Err(r) => (
-                    self.predicted_centre(&base_from_flange, progress),
-                    Some(format!("board not found ({})", r.reason)),
-                ),
-            };
-            if let Some(why) = badly_placed {
-                last_reason = why;
-                if attempt + 1 < tries
-                    && let Some(c) = centre_in_camera
-                {
-                    let base_from_camera = base_from_flange * self.cfg.mount_approx;
-                    let wanted = recentre(&base_from_camera, &c, None);
-                    let camera_for_plan = camera.clone();
-                    let scene = PlanScene {
-                        arm: &self.arm,
-                        guard: &self.guard,
-                        camera: &camera_for_plan,
-                        base_from_target: self.cfg.board_approx,
-                        flange_from_camera: self.cfg.mount_approx,
-                        target_points: &self.target.points,
-                        view_axis: self.target.spec.view_axis(),
-                    };
-                    match reach(&scene, &wanted, &q) {
-                        Ok((q_new, _))
-                            if crate::plan::leg_is_safe(
-                                &self.guard,
-                                &q,
-                                &q_new,
-                                self.cfg.plan.path_step_rad,
-                            ) =>
-                        {
-                            target_q = q_new;
-                            self.timings.decide_ms += ms(decide_started.elapsed());
-                            continue;
-                        }
-                        Ok(_) => last_reason += "; the re-centred pose has no safe path",
-                        Err(e) => last_reason += &format!("; the re-centred pose: {e}"),
-                    }
-                }
-                // A usable (if off-centre) board is still a capture.
-                self.timings.decide_ms += ms(decide_started.elapsed());
-                if observed.is_ok() {
-                    return Ok(capture(observed));
-                }
-                return Ok(capture(Err(self.reject(
-                    row,
-                    format!("{last_reason} after {} tries", attempt + 1),
-                ))));
-            }
-            // Too similar to one already taken?
-            if let Some((k, _)) = progress.good_poses.iter().enumerate().find(|(_, p)| {
-                let (t, r) = pose_distance(p, &base_from_flange);
-                t < a.similar_t_m && r < a.similar_r_rad
-            }) {
-                self.timings.decide_ms += ms(decide_started.elapsed());
-                return Ok(capture(Err(
-                    self.reject(row, format!("too similar to good capture {}", k + 1))
-                )));
-            }
-            // Blurred?
-            if let Some(s) = sharpness {
-                if self.sharpness.len() >= 3 {
-                    let mut sorted = self.sharpness.clone();
-                    sorted.sort_by(f64::total_cmp);
-                    let median = sorted[sorted.len() / 2];
-                    if s < a.blur_fraction * median {
-                        self.timings.decide_ms += ms(decide_started.elapsed());
-                        return Ok(capture(Err(self.reject(
-                            row,
-                            format!(
-                                "blurred: sharpness {s:.0} < {:.0}% of the median {median:.0}",
-                                a.blur_fraction * 100.0
-                            ),
-                        ))));
-                    }
-                }
-                if observed.is_ok() {
-                    self.sharpness.push(s);
-                }
-            }
-            self.timings.decide_ms += ms(decide_started.elapsed());
-            return Ok(capture(observed));
+            let started = Instant::now();
+            action = self.routine.step_visit(&mut visit, event, &status);
+            self.timings.decide_ms += ms(started.elapsed());
         }
-        Ok(SourceCapture {
-            index: row as u64 - 1,
-            image: None,
-            base_from_flange: self.arm.fk(&self.measured()?),
-            controller_time_s: None,
-            camera: self.camera.clone().context("no camera intrinsics yet")?,
-            observed: Err(self.reject(row, last_reason)),
-            pixels: None,
-            features: None,
-            target_centre: self.target.centre(),
-        })
     }
 
-    /// A board pose seen from a good capture (approximate mount): the first one
-    /// replaces the configured position for planning.
-    fn observed_board(&mut self, base_from_target: Iso3) {
-        if self.board_estimate.is_none() || self.plans <= 1 {
-            self.board_estimate = Some(base_from_target);
+    /// Detects the target in a still frame: the capture as it would be
+    /// delivered, and what the routine needs to judge it.
+    fn look(
+        &mut self,
+        frame: &LiveFrame,
+        q: &Joints,
+        controller_t: f64,
+        row: usize,
+        progress: &Progress,
+    ) -> (SourceCapture, View) {
+        let camera = frame.camera.clone();
+        let base_from_flange = self.arm.fk(q);
+        let detect_started = Instant::now();
+        let (observed, sharpness) =
+            self.target
+                .observe(&self.cfg.robot, frame, base_from_flange, row);
+        let features = match (&self.cfg.features, &frame.depth) {
+            (Some(options), Some((depth, unit))) => frame_features(frame, depth, *unit, options)
+                .map_err(|e| tracing::warn!("frame {}: no features: {e:#}", frame.number))
+                .ok(),
+            _ => None,
+        };
+        self.timings.detect_ms += ms(detect_started.elapsed());
+        let board = match &observed {
+            Ok(o) => {
+                let n = o.board.pixels.len().max(1) as f64;
+                let c = o
+                    .board
+                    .pixels
+                    .iter()
+                    .fold(Point2::origin(), |acc, p| acc + p.coords / n);
+                Ok(BoardInImage {
+                    centre_px: c,
+                    width: camera.width,
+                    height: camera.height,
+                    principal_px: Point2::new(camera.cx, camera.cy),
+                    centre_in_camera: o.camera_from_target * self.target.centre(),
+                })
+            }
+            Err(r) => Err(r.reason.clone()),
+        };
+        let view = View {
+            base_from_flange,
+            predicted_centre_in_camera: board
+                .is_err()
+                .then(|| self.predicted_centre(&base_from_flange, progress))
+                .flatten(),
+            board,
+            sharpness,
+        };
+        let capture = SourceCapture {
+            index: row as u64 - 1,
+            image: Some(format!("frame {}", frame.number)),
+            base_from_flange,
+            controller_time_s: Some(controller_t),
+            camera,
+            observed,
+            pixels: Some(frame.grey.clone()),
+            features,
+            target_centre: self.target.centre(),
+        };
+        (capture, view)
+    }
+
+    /// A safe pose from `q` that puts `centre_in_camera` at the image centre.
+    fn recentre(
+        &self,
+        base_from_flange: &Iso3,
+        camera: &CameraModel,
+        q: &Joints,
+        centre_in_camera: &Point3<f64>,
+    ) -> Result<Joints, String> {
+        let base_from_camera = base_from_flange * self.cfg.mount_approx;
+        let wanted = recentre(&base_from_camera, centre_in_camera, None);
+        let scene = PlanScene {
+            arm: &self.arm,
+            guard: &self.guard,
+            camera,
+            base_from_target: self.cfg.board_approx,
+            flange_from_camera: self.cfg.mount_approx,
+            target_points: &self.target.points,
+            view_axis: self.target.spec.view_axis(),
+        };
+        match reach(&scene, &wanted, q) {
+            Ok((q_new, _))
+                if crate::plan::leg_is_safe(
+                    &self.guard,
+                    q,
+                    &q_new,
+                    self.cfg.plan.path_step_rad,
+                ) =>
+            {
+                Ok(q_new)
+            }
+            Ok(_) => Err("the re-centred pose has no safe path".into()),
+            Err(e) => Err(format!("the re-centred pose: {e}")),
         }
     }
 
     /// Compute and motion timings so far.
     pub fn timings(&self) -> LiveTimings {
-        self.timings
+        LiveTimings {
+            retries: self.routine.retries(),
+            ..self.timings
+        }
     }
 
     /// The FRI client (for shutdown).
@@ -626,18 +554,13 @@ impl LiveSource {
     }
 }
 
-fn sigmas(cov: &[[f64; 6]; 6]) -> (f64, f64) {
-    let r = (0..3)
-        .map(|i| cov[i][i])
-        .fold(0.0, f64::max)
-        .max(0.0)
-        .sqrt();
-    let t = (3..6)
-        .map(|i| cov[i][i])
-        .fold(0.0, f64::max)
-        .max(0.0)
-        .sqrt();
-    (t, r)
+/// What the routine needs of the agent's progress.
+fn status(progress: &Progress) -> Status<'_> {
+    Status {
+        good: progress.good,
+        hand_eye_covariance: progress.hand_eye.as_ref().map(|he| &he.covariance),
+        good_poses: &progress.good_poses,
+    }
 }
 
 impl CaptureSource for LiveSource {
@@ -657,62 +580,28 @@ impl CaptureSource for LiveSource {
         progress: &Progress,
         stop: &AtomicBool,
     ) -> anyhow::Result<Option<SourceCapture>> {
-        if self.plan.is_none() {
-            let first_view = matches!(self.cfg.mode, LiveMode::Auto(_));
-            self.make_plan(first_view)?;
-        }
-        if let (LiveMode::Auto(a), Some(he)) = (&self.cfg.mode, &progress.hand_eye) {
-            let (t, r) = sigmas(&he.covariance);
-            if progress.good >= a.min_good && t <= a.stop_sigma_t_m && r <= a.stop_sigma_r_rad {
-                self.stopped_because = Some(format!(
-                    "data sufficient after {} good captures: hand-eye sigma {:.3} mm, {:.4} deg",
-                    progress.good,
-                    t * 1e3,
-                    r.to_degrees()
-                ));
-                return Ok(None);
-            }
-        }
-        if let LiveMode::Auto(a) = &self.cfg.mode {
-            let exhausted = self
-                .plan
-                .as_ref()
-                .is_none_or(|p| self.next_viewpoint >= p.viewpoints.len());
-            let planned_off = match (self.board_estimate, self.planned_for) {
-                (Some(b), Some(p)) => (b.translation.vector - p.translation.vector).norm() > 0.01,
-                _ => false,
-            };
-            let budget = 2 * self.cfg.plan.count;
-            if planned_off || (exhausted && progress.good < a.min_good && self.visited < budget) {
-                // Re-plan around the board where the camera actually sees it (or, when
-                // the plan ran out before enough good captures, new viewpoints).
-                let left = if planned_off {
-                    self.cfg.plan.count.saturating_sub(self.visited)
-                } else {
-                    (a.min_good - progress.good) * 3 / 2 + 2
-                };
-                let left = left.min(budget - self.visited);
-                if left > 0 {
-                    self.make_plan_of(false, left)?;
+        let v = loop {
+            match self.routine.next_step(&status(progress)) {
+                Step::Plan {
+                    count,
+                    first_view,
+                    phase,
+                } => self.make_plan(count, first_view, phase)?,
+                Step::Visit(k) => {
+                    break self
+                        .plan
+                        .as_ref()
+                        .and_then(|p| p.viewpoints.get(k))
+                        .cloned()
+                        .context("the routine asked for a viewpoint the plan does not have")?;
                 }
+                Step::Stop(_) => return Ok(None),
             }
-        }
-        let Some(v) = self
-            .plan
-            .as_ref()
-            .and_then(|p| p.viewpoints.get(self.next_viewpoint))
-            .cloned()
-        else {
-            self.stopped_because = Some("plan exhausted".into());
-            return Ok(None);
         };
-        self.next_viewpoint += 1;
         let cap = self.visit(&v, progress, stop)?;
-        self.visited += 1;
         if let Ok(o) = &cap.observed {
-            self.observed_board(
-                cap.base_from_flange * self.cfg.mount_approx * o.camera_from_target,
-            );
+            self.routine
+                .board_seen(cap.base_from_flange * self.cfg.mount_approx * o.camera_from_target);
         }
         self.captured += 1;
         self.timings.captures += 1;
@@ -725,9 +614,9 @@ impl CaptureSource for LiveSource {
         Some(format!(
             "{} captures ({}), {} retries; plans: {} in {:.0} ms; per capture: compute {:.1} ms (detect {:.1}, decide {:.2}; with the plans amortised {:.1}), motion {:.0} ms, frame wait {:.0} ms; frames passed over while moving {}",
             t.captures,
-            self.stopped_because.as_deref().unwrap_or("stopped"),
-            t.retries,
-            self.plans,
+            self.routine.stopped_because().unwrap_or("stopped"),
+            self.routine.retries(),
+            self.routine.plans(),
             t.plan_ms,
             (t.detect_ms + t.decide_ms) / n,
             t.detect_ms / n,

@@ -382,19 +382,14 @@ fn main() -> std::process::ExitCode {
             live,
             rerun,
         } => {
-            anyhow::ensure!(
-                stop_sigma_mm.is_finite()
-                    && stop_sigma_mm > 0.0
-                    && stop_sigma_deg.is_finite()
-                    && stop_sigma_deg > 0.0,
-                "--stop-sigma-mm and --stop-sigma-deg must be > 0"
-            );
             let auto = b2b_services::live::AutoConfig {
                 stop_sigma_t_m: stop_sigma_mm * 1e-3,
                 stop_sigma_r_rad: stop_sigma_deg.to_radians(),
                 min_good,
                 ..Default::default()
             };
+            auto.validate()
+                .context("--stop-sigma-mm and --stop-sigma-deg must be > 0")?;
             let stop = b2b_services::stop_flag();
             let (mut source, _cart) = connect(
                 &robot,
