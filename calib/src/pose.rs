@@ -8,7 +8,8 @@
 //! the error model needed to predict touch-point errors in `base1`.
 
 use nalgebra::{
-    Matrix3, Matrix4, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6,
+    Matrix3, Matrix4, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3,
+    Vector6,
 };
 
 use crate::{CalibError, Iso3};
@@ -208,6 +209,21 @@ pub fn adjoint(m: &Iso3) -> nalgebra::Matrix6<f64> {
 /// The skew-symmetric matrix of `v`, so that `skew(v) * u = v × u`.
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+}
+
+/// A camera at `eye` looking at `centre`, rolled about its view axis.
+pub fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, up_hint: &Vector3<f64>, roll: f64) -> Iso3 {
+    let z = (centre - eye).normalize();
+    // Image "down" (y) roughly along -up_hint projected on the image plane.
+    let mut y = -(up_hint - z * z.dot(up_hint));
+    if y.norm() < 1e-6 {
+        y = z.cross(&Vector3::x());
+    }
+    let y = y.normalize();
+    let x = y.cross(&z);
+    let r = UnitQuaternion::from_matrix(&Matrix3::from_columns(&[x, y, z]))
+        * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), roll);
+    Iso3::from_parts(Translation3::from(eye.coords), r)
 }
 
 #[cfg(test)]

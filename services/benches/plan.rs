@@ -1,7 +1,9 @@
 //! Viewpoint planning, what the automatic routine spends before its arm moves: one
 //! plan of 30 viewpoints (candidates on a cap about the target's view axis, nominal
 //! IK for each, the safety guard, farthest-point thinning, every leg checked) for the
-//! committed checkerboard scene's iiwa 7, from the setup an agent derives from it.
+//! committed checkerboard scene's iiwa 7, from the setup an agent derives from it
+//! (`b2b-sim-cart setup --scene datasets/sim-checkerboard-2x12/scene.json --robot
+//! robot1`, kept in `benches/fixtures/` so the bench needs no other binary).
 //! The routine plans twice (at the start, and around where the first good view put
 //! the board), so the figure per capture is two plans over 30 captures. Goal: at most
 //! 50 ms per capture, amortised.
@@ -18,10 +20,10 @@ use b2b_services::setup::CellSetup;
 use criterion::{Criterion, criterion_group, criterion_main};
 
 fn bench(c: &mut Criterion) {
-    let scene_file =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12/scene.json");
-    let dir = tempfile::tempdir().unwrap();
-    let setup = CellSetup::from_scene(&scene_file, "robot1", dir.path()).unwrap();
+    let setup = CellSetup::load(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/fixtures/setup-robot1.json"),
+    )
+    .unwrap();
     let target = setup.target_spec().unwrap();
     let points = target.all_points();
     let arm = Arm::new(setup.model);

@@ -4,7 +4,6 @@
 
 pub mod agent;
 pub mod bus;
-pub mod cart;
 pub mod coordinator;
 pub mod live;
 pub mod outputs;

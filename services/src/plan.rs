@@ -134,7 +134,7 @@ pub fn target_centre(points: &[Point3<f64>]) -> Point3<f64> {
 
 /// A camera at `eye` looking at `centre`, rolled about its view axis: the
 /// simulator's own aiming, so planned and generated viewpoints agree.
-pub use b2b_sim::generate::look_at;
+pub use b2b_calib::pose::look_at;
 
 /// Whether every target point projects at least `margin` px inside the image.
 pub fn all_in_view(

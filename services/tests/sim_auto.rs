@@ -22,7 +22,6 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use b2b_protocol::{CalibrationResult, Pose};
-use b2b_services::setup::CellSetup;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 fn dataset(name: &str) -> PathBuf {
@@ -85,7 +84,7 @@ fn run_auto(run: &Run<'_>) -> (tempfile::TempDir, PathBuf, Vec<String>, Calibrat
     );
     let mut agents = vec![];
     for robot in ["robot1", "robot2"] {
-        let mut setup = CellSetup::from_scene(&scene, robot, dir.path()).unwrap();
+        let mut setup = common::sim_setup(&scene, robot, dir.path());
         if let Some(off) = run.board_off {
             let board = setup.base_from_target_approx.to_isometry("board").unwrap() * off;
             setup.base_from_target_approx = Pose::from_isometry(&board);

@@ -25,7 +25,7 @@ use b2b_dataset::{
     CameraIntrinsics, Capture, Dataset, GroundTruth, Manifest, RobotData, RobotManifest, TouchPair,
 };
 use b2b_robot::{Arm, IkOptions};
-use nalgebra::{Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng as _, SeedableRng};
 
 use crate::render::{RenderSettings, Renderer, SceneGeometry};
@@ -53,20 +53,7 @@ pub struct GenerateOptions {
     pub render_only: Option<Vec<usize>>,
 }
 
-/// A camera at `eye` looking at `centre`, rolled about its view axis.
-pub fn look_at(eye: &Point3<f64>, centre: &Point3<f64>, up_hint: &Vector3<f64>, roll: f64) -> Iso3 {
-    let z = (centre - eye).normalize();
-    // Image "down" (y) roughly along -up_hint projected on the image plane.
-    let mut y = -(up_hint - z * z.dot(up_hint));
-    if y.norm() < 1e-6 {
-        y = z.cross(&Vector3::x());
-    }
-    let y = y.normalize();
-    let x = y.cross(&z);
-    let r = UnitQuaternion::from_matrix(&Matrix3::from_columns(&[x, y, z]))
-        * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), roll);
-    Iso3::from_parts(Translation3::from(eye.coords), r)
-}
+pub use b2b_calib::pose::look_at;
 
 /// What `generate` made, besides the files.
 #[derive(Debug, Clone)]

@@ -1,7 +1,8 @@
 //! `agent`: one per cart. `handeye` works offline on a dataset; `run` publishes a
 //! cart's captures over zenoh from a dataset replay, the simulated cart or a real arm
 //! (FRI + the camera process over iceoryx2); `auto` runs the automatic pre-operative
-//! routine; `cart` is the simulated cart itself (started by `--sim`).
+//! routine. `--sim` starts the simulated cart, its own binary (`b2b-sim-cart`), as a
+//! process.
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -111,23 +112,6 @@ enum Command {
         #[command(flatten)]
         rerun: RerunArgs,
     },
-    /// The simulated cart (an FRI server and a rendering camera); `--sim` starts it.
-    #[command(hide = true)]
-    Cart {
-        #[arg(long)]
-        scene: PathBuf,
-        #[arg(long)]
-        robot: String,
-        /// The FRI client (agent) address.
-        #[arg(long)]
-        client: std::net::SocketAddr,
-        #[arg(long, default_value = "127.0.0.1:0")]
-        bind: std::net::SocketAddr,
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        #[arg(long, default_value = "b2b/camera")]
-        camera_prefix: String,
-    },
     /// Hand-eye (T_flange_camera) of one robot from a b2b-dataset/1 folder.
     Handeye {
         /// The dataset folder.
@@ -192,6 +176,57 @@ impl Drop for Child {
     }
 }
 
+/// The simulated cart's binary: `B2B_SIM_CART`, or `b2b-sim-cart` beside the
+/// agent's own executable (cargo builds both into one folder).
+fn sim_cart_exe() -> anyhow::Result<PathBuf> {
+    if let Some(p) = std::env::var_os("B2B_SIM_CART") {
+        return Ok(PathBuf::from(p));
+    }
+    let exe = std::env::current_exe().context("cannot find the agent's own executable")?;
+    let cart = exe.with_file_name(format!("b2b-sim-cart{}", std::env::consts::EXE_SUFFIX));
+    anyhow::ensure!(
+        cart.is_file(),
+        "the simulated cart's binary is not at {} (build it with `cargo build -p b2b-sim-cart`, or set B2B_SIM_CART)",
+        cart.display()
+    );
+    Ok(cart)
+}
+
+/// What `b2b-sim-cart setup` reports.
+#[derive(Debug, serde::Deserialize)]
+struct DerivedSetup {
+    setup: PathBuf,
+    depth: bool,
+}
+
+/// Runs `b2b-sim-cart setup` for `robot` of `scene` into `dir`.
+fn sim_cart_setup(
+    scene: &std::path::Path,
+    robot: &str,
+    dir: &std::path::Path,
+) -> anyhow::Result<DerivedSetup> {
+    let out = std::process::Command::new(sim_cart_exe()?)
+        .args(["setup", "--robot", robot, "--scene"])
+        .arg(scene)
+        .arg("--dir")
+        .arg(dir)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .context("cannot start the simulated cart")?;
+    anyhow::ensure!(
+        out.status.success(),
+        "the simulated cart refused {}: {}",
+        scene.display(),
+        String::from_utf8_lossy(&out.stderr).trim()
+    );
+    serde_json::from_slice(&out.stdout).with_context(|| {
+        format!(
+            "the simulated cart's setup answer is not JSON: {}",
+            String::from_utf8_lossy(&out.stdout).trim()
+        )
+    })
+}
+
 /// Connects to the arm and camera of `--sim` or `--fri`; returns the source and,
 /// for `--sim`, the cart process.
 fn connect(
@@ -209,17 +244,21 @@ fn connect(
         count: live.count,
         ..Default::default()
     };
+    let mut has_depth = true;
     let (setup, conn, cart_scene) = match (sim, fri) {
         (Some(scene), None) => {
+            // The simulated cart's own binary derives the setup from the scene
+            // (board and mount off by a setup sheet's error); the target's files
+            // go into a folder of this agent process.
+            let derived = sim_cart_setup(
+                scene,
+                robot,
+                &std::env::temp_dir().join(format!("b2b-agent-{}-{robot}", std::process::id())),
+            )?;
+            has_depth = derived.depth;
             let setup = match &live.setup {
                 Some(f) => CellSetup::load(f)?,
-                // The target's files (a multimarker's) go beside the run's own
-                // service root, one folder per agent process.
-                None => CellSetup::from_scene(
-                    scene,
-                    robot,
-                    &std::env::temp_dir().join(format!("b2b-agent-{}-{robot}", std::process::id())),
-                )?,
+                None => CellSetup::load(&derived.setup)?,
             };
             // A unique service root per run, so two simulated cells never mix.
             let prefix = format!("{}/sim{}", live.camera_prefix, std::process::id());
@@ -251,18 +290,13 @@ fn connect(
     let mut frames = b2b_services::live::IceoryxFrames::new(&conn.camera_prefix, robot)?;
     let features = features.map(b2b_pipeline::rgbd::RgbdOptions::with_kind);
     // A simulated camera has depth only when its scene says so.
-    let has_depth = match &cart_scene {
-        Some(scene) => b2b_sim::scene::Scene::load(scene)?.depth.is_some(),
-        None => true,
-    };
     if features.is_some() && has_depth {
         frames = frames.with_depth(&conn.camera_prefix, robot)?;
     }
     let child = match cart_scene {
         Some(scene) => {
-            let exe = std::env::current_exe().context("cannot find the agent's own executable")?;
-            let child = std::process::Command::new(exe)
-                .args(["cart", "--robot", robot, "--client"])
+            let child = std::process::Command::new(sim_cart_exe()?)
+                .args(["run", "--robot", robot, "--client"])
                 .arg(fri.local_addr().to_string())
                 .arg("--scene")
                 .arg(&scene)
@@ -445,41 +479,6 @@ fn main() -> std::process::ExitCode {
                 finish_recording(rec);
             }
             print_result(&robot, result?, wait_result_s)
-        }
-        Command::Cart {
-            scene,
-            robot,
-            client,
-            bind,
-            seed,
-            camera_prefix,
-        } => {
-            b2b_frames::quiet_iceoryx2_logs();
-            let stop = b2b_services::stop_flag();
-            let s = b2b_sim::scene::Scene::load(&scene)?;
-            let r = s
-                .robots
-                .iter()
-                .position(|x| x.id == robot)
-                .with_context(|| format!("robot '{robot}' is not in {}", scene.display()))?;
-            let camera = s.camera(r)?;
-            let mut sink = b2b_services::cart::IceoryxSink::new(
-                &camera_prefix,
-                &robot,
-                &camera,
-                s.depth.is_some(),
-            )?;
-            let opts = b2b_services::cart::CartOptions {
-                scene,
-                robot,
-                client,
-                bind,
-                seed,
-                send_period_ms: 5,
-                idle_timeout: Duration::from_secs(5),
-            };
-            b2b_services::cart::run_cart(&opts, &mut sink, &stop)?;
-            Ok(())
         }
         Command::Handeye {
             dataset,

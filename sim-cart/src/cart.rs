@@ -1,4 +1,4 @@
-//! The simulated cart (`agent cart`, started by `agent run --sim` / `agent auto --sim`
+//! The simulated cart (`b2b-sim-cart run`, started by `agent run --sim` / `agent auto --sim`
 //! as a separate process): an LBR iiwa behind a real FRI server on UDP, and its flange
 //! camera rendering the scene into the same iceoryx2 services a RealSense process
 //! would fill. The agent talks to it exactly as to hardware: FRI datagrams in and out,
