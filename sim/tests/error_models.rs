@@ -920,9 +920,10 @@ fn study(structure: Structure) {
     if !op_pooled.is_empty() {
         // The touch-point view does not rescue it: the touches stand in other
         // configurations than the views, so little of the error cancels.
+        // README: 71%; held within 1.5x of it, and below honest.
         let op = op_pooled.iter().sum::<f64>() / op_pooled.len() as f64;
         assert!(
-            op < 0.9,
+            (0.71 / 1.5..0.9).contains(&op),
             "DH coverage against touches {op}: update the README"
         );
     }
@@ -931,7 +932,11 @@ fn study(structure: Structure) {
         // the split-half check widens the covariance but cannot see the part
         // common to all captures. Pinned down: if this starts to hold, the
         // README's caveat is out of date.
-        assert!(pooled < 0.9, "DH coverage {pooled}: update the README");
+        // README: 62%; held within 1.5x of it, and below honest.
+        assert!(
+            (0.62 / 1.5..0.9).contains(&pooled),
+            "DH coverage {pooled}: update the README"
+        );
     } else if !(0.90..=0.995).contains(&pooled) {
         failures.push(format!("pooled coverage {pooled}"));
     }
