@@ -221,7 +221,7 @@ pub fn estimate_hand_eye(
     let used = kept(&captures, &estimate.rejections);
     let split = split_check_hand_eye(robot.camera, &used, &estimate, options);
     if let Some(s) = split {
-        estimate.flange_from_camera_covariance *= s.factor;
+        s.widen(&mut estimate.flange_from_camera_covariance);
         estimate.base_from_target_covariance *= s.factor;
     }
     Ok(HandEyeRun {
@@ -279,8 +279,7 @@ pub fn estimate_base_to_base(
         options,
     );
     if let Some(s) = split {
-        estimate.covariance *= s.factor;
-        estimate.covariance += s.systematic();
+        s.widen(&mut estimate.covariance);
     }
     estimate.covariance += common_mode(&estimate, [&u1, &u2], &options.systematic);
     Ok(BaseToBaseRun {
@@ -306,8 +305,8 @@ pub fn estimate_base_to_base(
 /// the factor is 1 on average 60% of the time and seldom above 2.
 ///
 /// When the halves disagree beyond chance (`χ²` above [`SPLIT_SYSTEMATIC_CHI2`],
-/// the 99% point of χ²(6)), a base-to-base covariance also gains the
-/// disagreement itself, `d dᵀ`: the estimate may be off by at least as much as
+/// the 99% point of χ²(6)), the covariance of the checked quantity (the
+/// hand-eye, or `base1_from_base2`) also gains the disagreement itself, `d dᵀ`: the estimate may be off by at least as much as
 /// its halves disagree, along that direction, and more captures do not shrink
 /// it. Scaling alone shrinks with the capture count, which a systematic error
 /// does not. In the error-model study this raises the coverage under systematic
@@ -428,13 +427,29 @@ fn split_options(
 pub const SPLIT_SYSTEMATIC_CHI2: f64 = 16.81;
 
 impl SplitCheck {
+    /// The halves disagree beyond chance: `χ²` above [`SPLIT_SYSTEMATIC_CHI2`].
+    pub fn beyond_chance(&self) -> bool {
+        self.chi2 > SPLIT_SYSTEMATIC_CHI2
+    }
+
     /// The covariance a disagreement beyond chance adds (zero otherwise).
     pub fn systematic(&self) -> nalgebra::Matrix6<f64> {
-        if self.chi2 > SPLIT_SYSTEMATIC_CHI2 {
+        if self.beyond_chance() {
             self.difference * self.difference.transpose()
         } else {
             nalgebra::Matrix6::zeros()
         }
+    }
+}
+
+impl SplitCheck {
+    /// Widens the covariance of the checked quantity (the one whose halves were
+    /// compared, in the same left `[r; t]` coordinates): scaled by the Birge
+    /// factor, plus the disagreement when it is beyond chance. Both estimators
+    /// (hand-eye and base-to-base) apply the check this way.
+    pub fn widen(&self, covariance: &mut nalgebra::Matrix6<f64>) {
+        *covariance *= self.factor;
+        *covariance += self.systematic();
     }
 }
 
@@ -559,5 +574,22 @@ mod tests {
         assert!(
             ((along.transpose() * added * along)[0].sqrt() - s.difference.norm()).abs() < 1e-12
         );
+    }
+
+    #[test]
+    fn widening_scales_then_adds_the_disagreement_only_beyond_chance() {
+        let c = Matrix6::identity() * 1e-8;
+        for chi2 in [3.0, SPLIT_SYSTEMATIC_CHI2 - 0.1, 40.0] {
+            let s = check(chi2);
+            let mut widened = c;
+            s.widen(&mut widened);
+            let expected = if s.beyond_chance() {
+                c * (chi2 / 6.0) + s.difference * s.difference.transpose()
+            } else {
+                c * s.factor
+            };
+            assert!((widened - expected).norm() < 1e-20, "chi2 {chi2}");
+            assert_eq!(s.beyond_chance(), chi2 > SPLIT_SYSTEMATIC_CHI2);
+        }
     }
 }

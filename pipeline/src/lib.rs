@@ -57,7 +57,7 @@ use std::time::Instant;
 
 use b2b_calib::camera::CameraModel;
 use b2b_calib::estimate::{
-    Rejection, RobotCaptures, SPLIT_SYSTEMATIC_CHI2, estimate_base_to_base, estimate_hand_eye,
+    Rejection, RobotCaptures, SplitCheck, estimate_base_to_base, estimate_hand_eye,
 };
 use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
@@ -1365,6 +1365,9 @@ fn hand_eye_with(
                 options,
             )
             .map_err(calib(robot))?;
+            if let Some(split) = run.split.filter(SplitCheck::beyond_chance) {
+                warn_systematic(&format!("robot {robot}'s T_flange_camera"), &split);
+            }
             rejections = run.rejections;
             run.estimate
         }
@@ -1668,19 +1671,8 @@ fn joint_base_to_base(
     });
     let pair = format!("{}+{}", obs1.robot, obs2.robot);
     let run = estimate_base_to_base([&captures[0], &captures[1]], options).map_err(calib(&pair))?;
-    if let Some(split) = run.split.filter(|s| s.chi2 > SPLIT_SYSTEMATIC_CHI2) {
-        let d = split.difference;
-        tracing::warn!(
-            chi2 = split.chi2,
-            "the captures on opposite sides of the board give base1_from_base2 {:.2} mm / {:.3}° apart, \
-             beyond their noise (chi-square {:.0} on 6 dof): a systematic robot error (kinematic \
-             parameters, a sagging base or mount); the bound includes the disagreement, but not \
-             the part common to all captures: give the arms' absolute accuracy \
-             (--robot-accuracy-mm, --robot-accuracy-deg) and check with touch points",
-            d.fixed_rows::<3>(3).norm() * 1e3,
-            d.fixed_rows::<3>(0).norm().to_degrees(),
-            split.chi2
-        );
+    if let Some(split) = run.split.filter(SplitCheck::beyond_chance) {
+        warn_systematic("base1_from_base2", &split);
     }
     let joint = run.estimate;
     let (mean, p95) = predicted_error(
@@ -1834,6 +1826,24 @@ fn repeated_locations(
 /// Loads a dataset, naming the folder in the error.
 pub fn load_dataset(dir: &Path) -> Result<Dataset, PipelineError> {
     Ok(Dataset::load(dir)?)
+}
+
+/// The split-half check found the captures on opposite sides of the board
+/// disagreeing beyond their noise: says so, with the size of the gap and what
+/// to do (the covariance already includes the gap, not the common part).
+fn warn_systematic(what: &str, split: &SplitCheck) {
+    let d = split.difference;
+    tracing::warn!(
+        chi2 = split.chi2,
+        "the captures on opposite sides of the board give {what} {:.2} mm / {:.3}° apart, \
+         beyond their noise (chi-square {:.0} on 6 dof): a systematic robot error (kinematic \
+         parameters, a sagging base or mount); the bound includes the disagreement, but not \
+         the part common to all captures: give the arms' absolute accuracy \
+         (--robot-accuracy-mm, --robot-accuracy-deg) and check with touch points",
+        d.fixed_rows::<3>(3).norm() * 1e3,
+        d.fixed_rows::<3>(0).norm().to_degrees(),
+        split.chi2
+    );
 }
 
 #[cfg(test)]
