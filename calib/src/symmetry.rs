@@ -247,6 +247,50 @@ impl TargetSymmetry {
         let s = self.elements[k].target_transform;
         points.iter().map(|p| s * p).collect()
     }
+
+    /// One view's labelling from a prior on where the target is: the element
+    /// whose relabelled pose turns the target nearest to `expected` (the camera's
+    /// view of the target that, e.g., a setup sheet's approximate board pose and
+    /// the mount's drawing give). Decided only when the nearest is within
+    /// `max_angle_rad` of the prior and every other element is at least
+    /// `max_angle_rad` farther from it: a prior off by more than the elements
+    /// are apart cannot choose.
+    ///
+    /// This is how an agent that publishes each capture as it is taken labels a
+    /// symmetric board; offline, [`resolve_labelling`] decides from the motion
+    /// without a prior.
+    pub fn label_by_prior(
+        &self,
+        camera_from_target: &Iso3,
+        expected: &Iso3,
+        max_angle_rad: f64,
+    ) -> PriorLabelling {
+        let mut angles: Vec<(f64, usize)> = (0..self.len())
+            .map(|k| {
+                let r = self.relabel_pose(camera_from_target, k).rotation;
+                (r.angle_to(&expected.rotation), k)
+            })
+            .collect();
+        angles.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let (best_rad, k) = angles[0];
+        let runner_up_rad = angles.get(1).map_or(f64::INFINITY, |a| a.0);
+        let decided = best_rad <= max_angle_rad && runner_up_rad - best_rad >= max_angle_rad;
+        PriorLabelling {
+            element: decided.then_some(k),
+            best_rad,
+            runner_up_rad,
+        }
+    }
+}
+
+/// What [`TargetSymmetry::label_by_prior`] found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PriorLabelling {
+    /// The labelling, when the prior decides it.
+    pub element: Option<usize>,
+    /// The nearest labelling's angle from the prior, and the next one's (rad).
+    pub best_rad: f64,
+    pub runner_up_rad: f64,
 }
 
 fn same_transform(a: &Iso3, b: &Iso3) -> bool {
@@ -852,5 +896,48 @@ mod tests {
             // Relabelling robot 2 by the half-turn undoes what was done to it.
             assert_eq!(r.element, decided.then_some(1), "tilt {tilt_deg}");
         }
+    }
+
+    #[test]
+    fn a_prior_within_its_bound_chooses_the_labelling_and_a_wrong_one_cannot() {
+        let sym = TargetSymmetry::grid_turns(8, 6, 0.03, false);
+        // The true view of the board, and the detector's answer in the other labelling.
+        let truth = Iso3::from_parts(
+            Vector3::new(0.02, -0.01, 0.5).into(),
+            nalgebra::UnitQuaternion::from_euler_angles(3.0, 0.2, 0.4),
+        );
+        let detected = truth * sym.elements()[1].target_transform;
+        let bound = 45f64.to_radians();
+        for (prior_off_deg, decided) in [
+            (0.0, true),
+            (10.0, true),
+            (40.0, true),
+            (60.0, false),
+            (90.0, false),
+        ] {
+            let off = nalgebra::UnitQuaternion::from_scaled_axis(
+                Vector3::new(0.3, 1.0, 0.4).normalize() * f64::to_radians(prior_off_deg),
+            );
+            let expected = Iso3::from_parts(truth.translation, truth.rotation * off);
+            let l = sym.label_by_prior(&detected, &expected, bound);
+            if decided {
+                let k = l
+                    .element
+                    .unwrap_or_else(|| panic!("{prior_off_deg}° undecided: {l:?}"));
+                let relabelled = sym.relabel_pose(&detected, k);
+                assert!(relabelled.rotation.angle_to(&truth.rotation) < 1e-9);
+                assert!((relabelled.translation.vector - truth.translation.vector).norm() < 1e-9);
+            } else {
+                assert_eq!(l.element, None, "{prior_off_deg}°: {l:?}");
+            }
+        }
+        // A target without symmetry: the prior has nothing to choose, whatever it says.
+        let plain = TargetSymmetry::trivial(48);
+        let far = Iso3::from_parts(
+            truth.translation,
+            truth.rotation * nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 3.0),
+        );
+        assert_eq!(plain.label_by_prior(&truth, &truth, bound).element, Some(0));
+        assert_eq!(plain.label_by_prior(&truth, &far, bound).element, None);
     }
 }
