@@ -155,6 +155,16 @@ fn agent(client: &FriClient, stop: &AtomicBool) -> (u64, u64) {
     (moves, failures)
 }
 
+/// CPU time the hypervisor gave to other guests while this one wanted to run
+/// ("steal", summed over CPUs; `/proc/stat`, 10 ms per tick), when the kernel
+/// reports it. A cycle thread cannot be on time while its CPU is stolen.
+fn steal_ms() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let cpu = stat.lines().find(|l| l.starts_with("cpu "))?;
+    let ticks: u64 = cpu.split_whitespace().nth(8)?.parse().ok()?;
+    Some(ticks as f64 * 10.0)
+}
+
 fn per_10k(count: u64, cycles: u64) -> f64 {
     count as f64 * 10_000.0 / cycles.max(1) as f64
 }
@@ -199,6 +209,7 @@ fn replies_stay_on_time_with_every_core_busy() {
         .wait_for_state(SessionState::CommandingActive, Duration::from_secs(10))
         .expect("commanding before the load starts");
 
+    let steal_before = steal_ms();
     let load = Load::start();
     let stop_agent = AtomicBool::new(false);
     let before = controller.snapshot().stats;
@@ -217,6 +228,7 @@ fn replies_stay_on_time_with_every_core_busy() {
         (after, agent.join().expect("agent thread"))
     });
     let elapsed = started.elapsed();
+    let stolen = steal_ms().zip(steal_before).map(|(a, b)| a - b);
     let work = load.work.load(Ordering::Relaxed);
     drop(load);
     let client_stats = client.stats();
@@ -250,6 +262,12 @@ fn replies_stay_on_time_with_every_core_busy() {
         after.max_reply_latency.as_secs_f64() * 1e3,
     );
     println!("  client: {client_stats:?}");
+    match stolen {
+        Some(ms) => {
+            println!("  CPU time stolen by the hypervisor during the run: {ms:.0} ms over all CPUs")
+        }
+        None => println!("  CPU time stolen by the hypervisor: not reported by this kernel"),
+    }
     println!(
         "  cycle threads scheduled: controller {controller_scheduling:?}, client \
          {client_scheduling:?}"

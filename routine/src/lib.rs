@@ -73,7 +73,7 @@ pub enum RoutineError {
 }
 
 /// The automatic routine's settings (defaults: the constants above).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RoutineConfig {
     pub max_tries: usize,
     pub off_centre: f64,
@@ -317,7 +317,7 @@ impl Routine {
         if self.plan_len.is_none() {
             return self.first_plan();
         }
-        if let Some(a) = self.auto().cloned() {
+        if let Some(a) = self.auto().copied() {
             if let Some(cov) = status.hand_eye_covariance {
                 let (t, r) = sigmas(cov);
                 if status.good >= a.min_good && t <= a.stop_sigma_t_m && r <= a.stop_sigma_r_rad {
@@ -473,7 +473,7 @@ impl Routine {
     /// The automatic routine's checks of a still frame, in order: placement
     /// (re-centre), similarity, blur.
     fn judge(&mut self, visit: &mut Visit, view: View, status: &Status<'_>) -> VisitAction {
-        let Some(a) = self.auto().cloned() else {
+        let Some(a) = self.auto().copied() else {
             return VisitAction::Deliver;
         };
         let (centre, badly_placed) = match &view.board {

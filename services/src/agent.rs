@@ -97,22 +97,22 @@ pub struct AgentOptions {
     pub rerun: Arc<b2b_viz::Recorder>,
 }
 
-/// Options of `agent run --replay`.
-#[derive(Debug, Clone)]
-pub struct ReplayOptions {
-    pub robot: String,
-    pub dataset: PathBuf,
+/// How an agent reaches the coordinator (`agent run`, `agent auto`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct BusArgs {
+    /// zenoh configuration file (JSON5); default: loopback peer connecting to
+    /// the coordinator on tcp/127.0.0.1:7447.
+    #[arg(long)]
     pub zenoh: Option<PathBuf>,
+    /// Where the agent keeps its sequence number.
+    #[arg(long, default_value = "agent-state")]
     pub state_dir: PathBuf,
-    /// Pause between captures (a real arm takes seconds per pose).
-    pub pace: Duration,
-    /// How long to wait for the coordinator's result after the last capture.
-    pub wait_result: Duration,
-    pub progress: bool,
-    pub rerun: Arc<b2b_viz::Recorder>,
-    /// Local features for the RGB-D method, published with every capture that has
-    /// a depth image (`None`: not computed).
-    pub features: Option<b2b_vision::features::FeatureKind>,
+    /// Seconds to wait for the coordinator's result after the last capture.
+    #[arg(long, default_value_t = 600)]
+    pub wait_result_s: u64,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
 }
 
 /// What the agent knows so far, handed to the source before each capture (the
@@ -294,28 +294,21 @@ fn board_observation(o: &Observation, target_centre: &nalgebra::Point3<f64>) -> 
     }
 }
 
-/// Replays a dataset's captures for one robot onto the bus, then waits for the
-/// coordinator's result. Returns it when it came.
+/// Replays a dataset's captures for one robot onto the bus (with local
+/// features for the RGB-D method when `features` is given, for captures with a
+/// depth image), then waits for the coordinator's result. Returns it when it came.
 pub fn run_replay(
-    opts: &ReplayOptions,
+    opts: &AgentOptions,
+    dataset: &Path,
+    features: Option<b2b_vision::features::FeatureKind>,
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_robot_id(&opts.robot)?;
-    let mut source = ReplaySource::open(&opts.dataset, &opts.robot)?;
-    if let Some(kind) = opts.features {
+    let mut source = ReplaySource::open(dataset, &opts.robot)?;
+    if let Some(kind) = features {
         source = source.with_features(kind);
     }
-    let agent = AgentOptions {
-        robot: opts.robot.clone(),
-        zenoh: opts.zenoh.clone(),
-        state_dir: opts.state_dir.clone(),
-        pace: opts.pace,
-        wait_result: opts.wait_result,
-        progress: opts.progress,
-        refine: RefineOptions::default(),
-        rerun: Arc::clone(&opts.rerun),
-    };
-    run_agent(&agent, &mut source, stop)
+    run_agent(opts, &mut source, stop)
 }
 
 /// Publishes one source's captures onto a zenoh session (captures, hand-eye,

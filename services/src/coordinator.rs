@@ -223,3 +223,68 @@ pub fn run_on(
     )?;
     Ok((result, counters))
 }
+
+/// The RGB-D method with hand-eyes read from HANDEYE.json files, one per robot of
+/// the dataset.
+pub fn rgbd_with_hand_eye_files(
+    ds: &b2b_dataset::Dataset,
+    files: &[PathBuf],
+) -> anyhow::Result<CalibrationResult> {
+    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
+    anyhow::ensure!(
+        ids.len() == 2,
+        "base-to-base needs two robots, the dataset lists {}",
+        ids.len()
+    );
+    let mut found: Vec<Option<(nalgebra::Isometry3<f64>, nalgebra::Matrix6<f64>)>> =
+        vec![None, None];
+    for path in files {
+        let he: b2b_protocol::HandEyeResult = crate::read_json(path)?;
+        anyhow::ensure!(
+            he.format == b2b_protocol::HANDEYE_FORMAT,
+            "{}: format '{}', expected '{}'",
+            path.display(),
+            he.format,
+            b2b_protocol::HANDEYE_FORMAT
+        );
+        let k = ids.iter().position(|id| *id == he.robot).with_context(|| {
+            format!(
+                "{}: robot '{}' is not in the dataset ({})",
+                path.display(),
+                he.robot,
+                ids.join(", ")
+            )
+        })?;
+        anyhow::ensure!(
+            found[k].is_none(),
+            "{}: a second hand-eye for robot '{}'",
+            path.display(),
+            he.robot
+        );
+        let x = he
+            .flange_from_camera
+            .to_isometry("T_flange_camera")
+            .with_context(|| path.display().to_string())?;
+        let cov = nalgebra::Matrix6::from_fn(|i, j| he.covariance[i][j]);
+        anyhow::ensure!(
+            cov.iter().all(|v| v.is_finite()),
+            "{}: covariance has a non-finite entry",
+            path.display()
+        );
+        found[k] = Some((x, cov));
+    }
+    let (Some(a), Some(b)) = (found[0], found[1]) else {
+        anyhow::bail!(
+            "--hand-eye: need one HANDEYE.json for each of {} and {}",
+            ids[0],
+            ids[1]
+        );
+    };
+    let run = b2b_pipeline::rgbd::rgbd_base_to_base_with_hand_eyes(
+        ds,
+        [a.0, b.0],
+        Some([a.1, b.1]),
+        &b2b_pipeline::rgbd::RgbdOptions::default(),
+    )?;
+    Ok(run.result)
+}

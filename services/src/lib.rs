@@ -1,6 +1,8 @@
 //! The service binaries' library: the zenoh bus, the coordinator's journal, the
-//! live agent and coordinator loops, and result files. What is computed lives in
-//! `b2b-pipeline`; this crate wires it to processes, sockets and files.
+//! live agent and coordinator loops, the live sources (FRI and iceoryx2, the
+//! simulated cart's process), rerun recordings, and result files and printouts.
+//! What is computed lives in `b2b-pipeline`; this crate wires it to processes,
+//! sockets and files, and the binaries are argument parsing and wiring.
 
 pub mod agent;
 pub mod bus;
@@ -8,7 +10,9 @@ pub mod coordinator;
 pub mod live;
 pub mod outputs;
 pub mod plan;
+pub mod recording;
 pub mod setup;
+pub mod sim_cart;
 pub mod store;
 
 use std::path::Path;
@@ -60,41 +64,25 @@ pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<
 #[derive(Debug, Clone, Copy, clap::Args)]
 pub struct RobotNoiseArgs {
     /// Flange translation error per capture for the first fit, 1 sigma (mm).
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = 0.05, value_parser = non_negative)]
     pub robot_sigma_mm: f64,
     /// Flange rotation error per capture, 1 sigma (degrees).
-    #[arg(long, default_value_t = 0.01)]
+    #[arg(long, default_value_t = 0.01, value_parser = non_negative)]
     pub robot_sigma_deg: f64,
     /// The arm's systematic (absolute) pose error, 1 sigma (mm): kinematic
     /// errors that do not show in the residuals. Added to the result's
     /// covariance as an error common to all captures. 0: none.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
     pub robot_accuracy_mm: f64,
     /// The arm's systematic orientation error, 1 sigma (degrees).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
     pub robot_accuracy_deg: f64,
 }
 
 impl RobotNoiseArgs {
-    /// Refinement options with this noise.
-    pub fn options(&self) -> anyhow::Result<b2b_calib::refine::RefineOptions> {
-        anyhow::ensure!(
-            self.robot_sigma_mm.is_finite() && self.robot_sigma_mm >= 0.0,
-            "--robot-sigma-mm must be a number >= 0"
-        );
-        anyhow::ensure!(
-            self.robot_sigma_deg.is_finite() && self.robot_sigma_deg >= 0.0,
-            "--robot-sigma-deg must be a number >= 0"
-        );
-        anyhow::ensure!(
-            self.robot_accuracy_mm.is_finite() && self.robot_accuracy_mm >= 0.0,
-            "--robot-accuracy-mm must be a number >= 0"
-        );
-        anyhow::ensure!(
-            self.robot_accuracy_deg.is_finite() && self.robot_accuracy_deg >= 0.0,
-            "--robot-accuracy-deg must be a number >= 0"
-        );
-        Ok(b2b_calib::refine::RefineOptions {
+    /// Refinement options with this noise (clap has checked each is a number >= 0).
+    pub fn options(&self) -> b2b_calib::refine::RefineOptions {
+        b2b_calib::refine::RefineOptions {
             systematic: b2b_calib::refine::RobotNoise {
                 sigma_t_m: self.robot_accuracy_mm * 1e-3,
                 sigma_r_rad: self.robot_accuracy_deg.to_radians(),
@@ -104,67 +92,16 @@ impl RobotNoiseArgs {
                 sigma_r_rad: self.robot_sigma_deg.to_radians(),
             },
             ..Default::default()
-        })
+        }
     }
 }
 
-/// Where a command's rerun recording goes: `--rerun-save FILE.rrd` and/or
-/// `--rerun-connect ADDR` (a running viewer); neither: no recording.
-#[derive(Debug, Clone, Default, clap::Args)]
-pub struct RerunArgs {
-    /// Write a rerun recording of this run to FILE.rrd.
-    #[arg(long, value_name = "FILE.rrd", conflicts_with = "rerun_connect")]
-    pub rerun_save: Option<std::path::PathBuf>,
-    /// Stream the recording to a running rerun viewer
-    /// (e.g. rerun+http://127.0.0.1:9876/proxy).
-    #[arg(long, value_name = "ADDR")]
-    pub rerun_connect: Option<String>,
-}
-
-impl RerunArgs {
-    /// The recorder these flags ask for.
-    pub fn recorder(&self, app_id: &str) -> anyhow::Result<b2b_viz::Recorder> {
-        Ok(match (&self.rerun_save, &self.rerun_connect) {
-            (Some(path), _) => b2b_viz::Recorder::save(app_id, path)
-                .with_context(|| format!("cannot write the recording {}", path.display()))?,
-            (None, Some(addr)) => b2b_viz::Recorder::connect(app_id, addr)
-                .with_context(|| format!("cannot stream to the rerun viewer at {addr}"))?,
-            (None, None) => b2b_viz::Recorder::disabled(),
-        })
-    }
-}
-
-/// Closes a recording; a viewer that went away is a warning, not a failed run.
-pub fn finish_recording(rec: b2b_viz::Recorder) {
-    if !rec.is_enabled() {
-        return;
-    }
-    if let Err(e) = rec.finish() {
-        eprintln!(
-            "warning: the rerun recording did not finish cleanly: {}",
-            b2b_pipeline::error_chain(&e)
-        );
-    }
-}
-
-/// Logs a result (both bases, hand-eyes, uncertainty) to a recording; robot 1 is
-/// the first id of `order` (default: sorted ids).
-pub fn log_result(
-    rec: &b2b_viz::Recorder,
-    result: &b2b_protocol::CalibrationResult,
-    order: Option<&[String]>,
-) {
-    if !rec.is_enabled() {
-        return;
-    }
-    let ids: Vec<String> = match order {
-        Some(o) if o.len() >= 2 => o.to_vec(),
-        _ => result.hand_eye.keys().cloned().collect(),
-    };
-    if ids.len() >= 2
-        && let Err(e) = rec.log_result(result, [ids[0].as_str(), ids[1].as_str()], 1.0)
-    {
-        tracing::warn!("rerun: {}", b2b_pipeline::error_chain(&e));
+/// clap's parser of a number that must be finite and `>= 0` (sigmas, tolerances).
+pub fn non_negative(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        Ok(_) => Err(format!("{text} is not a number >= 0")),
+        Err(e) => Err(format!("{text}: {e}")),
     }
 }
 
@@ -217,4 +154,21 @@ pub fn undocumented_args(cmd: &clap::Command) -> Vec<String> {
     let mut out = vec![];
     walk(cmd, "", &mut out);
     out
+}
+
+/// The test every binary carries: each flag of its command line has a help text.
+/// `b2b_services::every_flag_has_help!(Cli);` in a binary with a clap `Cli`.
+#[macro_export]
+macro_rules! every_flag_has_help {
+    ($cli:ident) => {
+        #[cfg(test)]
+        mod every_flag_has_help {
+            #[test]
+            fn every_flag_has_help() {
+                let missing =
+                    $crate::undocumented_args(&<super::$cli as ::clap::CommandFactory>::command());
+                assert!(missing.is_empty(), "flags without help: {missing:?}");
+            }
+        }
+    };
 }

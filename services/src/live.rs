@@ -23,7 +23,7 @@ use nalgebra::{Isometry3, Point2, Point3};
 
 use crate::agent::{CaptureSource, Progress, SourceCapture};
 use crate::plan::{Plan, PlanConfig, PlanScene, Viewpoint, plan_viewpoints, reach, recentre};
-use b2b_routine::{BoardInImage, Routine, Status, Step, View, VisitAction, VisitEvent};
+use b2b_routine::{BoardInImage, Mode, Routine, Status, Step, View, VisitAction, VisitEvent};
 
 type Iso3 = Isometry3<f64>;
 
@@ -49,6 +49,12 @@ pub trait FrameSource {
     fn dropped(&self) -> u64;
 }
 
+/// How far (rad) a symmetric board's orientation may be from where the agent
+/// believes it is for the belief to choose its labelling: a setup sheet and a
+/// mount drawing are good to a few degrees, and the labellings of a board that
+/// looks the same turned by 180° are 180° apart.
+pub const PRIOR_LABELLING_MAX_RAD: f64 = std::f64::consts::FRAC_PI_4;
+
 /// The calibration target as the agent knows it (configuration, not truth): the
 /// pipeline's one target model, and its points.
 #[derive(Debug, Clone)]
@@ -71,11 +77,19 @@ impl LiveTarget {
     }
 
     /// Detects the target in a frame and fits its pose, or says why not.
+    ///
+    /// A target with a symmetry (a checkerboard with `cols + rows` even) is
+    /// labelled by `expected_camera_from_target`, where the agent believes the
+    /// board is in this view (the setup sheet's board through the mount's
+    /// drawing, then the board as the captures so far placed it): the labelling
+    /// within [`PRIOR_LABELLING_MAX_RAD`] of it, or the capture is rejected
+    /// with the reason. Every capture of one agent is thereby labelled alike.
     pub fn observe(
         &self,
         robot: &str,
         frame: &LiveFrame,
         base_from_flange: Iso3,
+        expected_camera_from_target: &Iso3,
         row: usize,
     ) -> (Result<Observation, RejectedCapture>, Option<f64>) {
         let name = format!("frame {}", frame.number);
@@ -94,10 +108,38 @@ impl LiveTarget {
             Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), None),
         };
         let sharpness = img.laplacian_variance().ok();
-        let (detection, pose) = match self.spec.detect(&img, &frame.camera) {
+        let symmetry = self.spec.symmetry();
+        let detected = if symmetry.is_trivial() {
+            self.spec.detect(&img, &frame.camera)
+        } else {
+            self.spec.detect_up_to_symmetry(&img, &frame.camera)
+        };
+        let (mut detection, mut pose) = match detected {
             Ok(d) => d,
             Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
         };
+        if !symmetry.is_trivial() {
+            let l = symmetry.label_by_prior(
+                &pose.camera_from_target,
+                expected_camera_from_target,
+                PRIOR_LABELLING_MAX_RAD,
+            );
+            let Some(k) = l.element else {
+                return (
+                    Err(reject(format!(
+                        "{} looks the same turned, and where the board is believed to be cannot                          tell which way: the nearest labelling is {:.0}° from it, the next {:.0}°                          (needs within {:.0}° and {:.0}° apart; check T_base_target_approx in the                          setup)",
+                        self.spec.describe(),
+                        l.best_rad.to_degrees(),
+                        l.runner_up_rad.to_degrees(),
+                        PRIOR_LABELLING_MAX_RAD.to_degrees(),
+                        PRIOR_LABELLING_MAX_RAD.to_degrees(),
+                    ))),
+                    sharpness,
+                );
+            };
+            pose.camera_from_target = symmetry.relabel_pose(&pose.camera_from_target, k);
+            detection.target_points = symmetry.relabel_points(&detection.target_points, k);
+        }
         (
             Ok(Observation {
                 row,
@@ -116,13 +158,11 @@ impl LiveTarget {
     }
 }
 
-pub use b2b_routine::{Mode as LiveMode, RoutineConfig as AutoConfig};
-
 /// Settings of a live source.
 #[derive(Debug, Clone)]
 pub struct LiveConfig {
     pub robot: String,
-    pub mode: LiveMode,
+    pub mode: Mode,
     pub plan: PlanConfig,
     /// The board's pose in this robot's base, approximately (a setup sheet).
     pub board_approx: Iso3,
@@ -147,7 +187,6 @@ pub struct LiveTimings {
     pub decide_ms: f64,
     pub motion_ms: f64,
     pub frame_wait_ms: f64,
-    pub retries: usize,
 }
 
 /// The live source.
@@ -283,9 +322,10 @@ impl LiveSource {
         self.camera = Some(frame.camera.clone());
         let base_from_flange = self.arm.fk(&q);
         if first_view {
-            let (observed, _) = self
-                .target
-                .observe(&self.cfg.robot, &frame, base_from_flange, 0);
+            let expected = self.expected_view(&base_from_flange, None);
+            let (observed, _) =
+                self.target
+                    .observe(&self.cfg.robot, &frame, base_from_flange, &expected, 0);
             match observed {
                 Ok(o) => self
                     .routine
@@ -356,20 +396,24 @@ impl LiveSource {
         }
     }
 
-    /// Where the board should be, in the camera at `base_from_flange`.
+    /// Where the board should be in the camera at `base_from_flange`: as the
+    /// good captures so far placed it, else as the first view or the setup
+    /// sheet did, seen through the mount's drawing.
+    fn expected_view(&self, base_from_flange: &Iso3, progress: Option<&Progress>) -> Iso3 {
+        let board = progress
+            .and_then(|p| p.base_from_target.last().copied())
+            .or(self.routine.board_estimate())
+            .unwrap_or(self.cfg.board_approx);
+        (base_from_flange * self.cfg.mount_approx).inverse() * board
+    }
+
+    /// Where the board centre should be, in the camera at `base_from_flange`.
     fn predicted_centre(
         &self,
         base_from_flange: &Iso3,
         progress: &Progress,
     ) -> Option<Point3<f64>> {
-        let board = progress
-            .base_from_target
-            .last()
-            .copied()
-            .or(self.routine.board_estimate())
-            .unwrap_or(self.cfg.board_approx);
-        let centre = self.target.centre();
-        Some((base_from_flange * self.cfg.mount_approx).inverse() * (board * centre))
+        Some(self.expected_view(base_from_flange, Some(progress)) * self.target.centre())
     }
 
     /// One viewpoint: the routine decides ([`Routine::step_visit`]); this does
@@ -384,8 +428,10 @@ impl LiveSource {
         let row = self.captured as usize + 1;
         let status = status(progress);
         let (mut visit, mut action) = self.routine.visit(v.q);
-        // The last still frame: its capture, and the joints it was taken at.
-        let mut last: Option<(SourceCapture, Joints)> = None;
+        // The last still frame: its capture, the joints it was taken at, and the
+        // frame (its features are computed only for the visit's final frame,
+        // never for the frames before a re-centring).
+        let mut last: Option<(SourceCapture, Joints, LiveFrame)> = None;
         loop {
             anyhow::ensure!(!stop.load(Ordering::SeqCst), "interrupted");
             let event = match action {
@@ -396,14 +442,14 @@ impl LiveSource {
                 VisitAction::Capture => match self.still_frame() {
                     Ok((frame, q, controller_t)) => {
                         let (capture, view) = self.look(&frame, &q, controller_t, row, progress);
-                        last = Some((capture, q));
+                        last = Some((capture, q, frame));
                         VisitEvent::Seen(view)
                     }
                     Err(e) => VisitEvent::NoFrame(format!("{e:#}")),
                 },
                 VisitAction::Recentre { centre_in_camera } => {
                     let started = Instant::now();
-                    let (capture, q) = last.as_ref().context("re-centring without a frame")?;
+                    let (capture, q, _) = last.as_ref().context("re-centring without a frame")?;
                     let result = self.recentre(
                         &capture.base_from_flange,
                         &capture.camera,
@@ -414,10 +460,13 @@ impl LiveSource {
                     VisitEvent::Recentred(result)
                 }
                 VisitAction::Deliver => {
-                    return last.map(|l| l.0).context("delivering without a frame");
+                    let (mut capture, _, frame) = last.context("delivering without a frame")?;
+                    capture.features = self.features(&frame);
+                    return Ok(capture);
                 }
                 VisitAction::Reject(reason) => {
-                    let (mut capture, _) = last.context("rejecting without a frame")?;
+                    let (mut capture, _, frame) = last.context("rejecting without a frame")?;
+                    capture.features = self.features(&frame);
                     capture.observed = Err(self.reject(row, reason));
                     return Ok(capture);
                 }
@@ -454,15 +503,10 @@ impl LiveSource {
         let camera = frame.camera.clone();
         let base_from_flange = self.arm.fk(q);
         let detect_started = Instant::now();
+        let expected = self.expected_view(&base_from_flange, Some(progress));
         let (observed, sharpness) =
             self.target
-                .observe(&self.cfg.robot, frame, base_from_flange, row);
-        let features = match (&self.cfg.features, &frame.depth) {
-            (Some(options), Some((depth, unit))) => frame_features(frame, depth, *unit, options)
-                .map_err(|e| tracing::warn!("frame {}: no features: {e:#}", frame.number))
-                .ok(),
-            _ => None,
-        };
+                .observe(&self.cfg.robot, frame, base_from_flange, &expected, row);
         self.timings.detect_ms += ms(detect_started.elapsed());
         let board = match &observed {
             Ok(o) => {
@@ -499,10 +543,23 @@ impl LiveSource {
             camera,
             observed,
             pixels: Some(frame.grey.clone()),
-            features,
+            features: None,
             target_centre: self.target.centre(),
         };
         (capture, view)
+    }
+
+    /// The RGB-D method's features of a visit's final frame, delivered or
+    /// rejected (none without a depth image, or when the agent was not asked for
+    /// them).
+    fn features(&mut self, frame: &LiveFrame) -> Option<b2b_protocol::messages::FeatureSet> {
+        let (options, (depth, unit)) = self.cfg.features.as_ref().zip(frame.depth.as_ref())?;
+        let started = Instant::now();
+        let features = frame_features(frame, depth, *unit, options)
+            .map_err(|e| tracing::warn!("frame {}: no features: {e:#}", frame.number))
+            .ok();
+        self.timings.detect_ms += ms(started.elapsed());
+        features
     }
 
     /// A safe pose from `q` that puts `centre_in_camera` at the image centre.
@@ -542,10 +599,7 @@ impl LiveSource {
 
     /// Compute and motion timings so far.
     pub fn timings(&self) -> LiveTimings {
-        LiveTimings {
-            retries: self.routine.retries(),
-            ..self.timings
-        }
+        self.timings
     }
 
     /// The FRI client (for shutdown).
@@ -566,8 +620,8 @@ fn status(progress: &Progress) -> Status<'_> {
 impl CaptureSource for LiveSource {
     fn describe(&self) -> String {
         match self.cfg.mode {
-            LiveMode::Program => format!("{}: visiting the planned viewpoints", self.cfg.robot),
-            LiveMode::Auto(_) => format!("{}: automatic routine", self.cfg.robot),
+            Mode::Program => format!("{}: visiting the planned viewpoints", self.cfg.robot),
+            Mode::Auto(_) => format!("{}: automatic routine", self.cfg.robot),
         }
     }
 

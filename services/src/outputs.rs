@@ -115,6 +115,152 @@ pub fn print_result(r: &CalibrationResult) {
     );
 }
 
+/// What `agent handeye` prints: the estimate, its captures, sigma, residual and
+/// timings, and the camera when its intrinsics were estimated or refined.
+pub fn print_hand_eye(run: &b2b_pipeline::HandEyeRun, obs: &b2b_pipeline::RobotObservations) {
+    let r = &run.result;
+    let t = r.flange_from_camera.t;
+    let q = r.flange_from_camera.q;
+    println!("robot {}: method {}", r.robot, r.method);
+    println!(
+        "captures: {} used, {} rejected",
+        obs.observations.len(),
+        r.captures.rejected.len()
+    );
+    for rej in &r.captures.rejected {
+        println!(
+            "  rejected {}: {}",
+            rej.image.as_deref().unwrap_or("-"),
+            rej.reason
+        );
+    }
+    println!(
+        "T_flange_camera t = [{:.6}, {:.6}, {:.6}] m",
+        t[0], t[1], t[2]
+    );
+    println!(
+        "                q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
+        q[0], q[1], q[2], q[3]
+    );
+    print_sigma(&r.covariance);
+    println!(
+        "reprojection RMS {:.3} px; detect {:.0} ms, solve {:.0} ms",
+        r.reprojection_rms_px, r.timings_ms.detect, r.timings_ms.solve
+    );
+}
+
+/// What `coordinator verify` prints: each touch's error against its bound, then
+/// the summary and ISO 9283 figures.
+pub fn print_verification(
+    report: &b2b_protocol::VerifyReport,
+    metrics: &b2b_calib::metrics::TouchMetrics,
+) {
+    println!("touch  error (mm)  bound95 (mm)");
+    for (i, (e, b)) in metrics.errors_m.iter().zip(&metrics.bound95_m).enumerate() {
+        println!(
+            "{:>5}  {:>10.3}  {:>12.3}{}",
+            i + 1,
+            e * 1e3,
+            b * 1e3,
+            if e > b { "  outside" } else { "" }
+        );
+    }
+    println!("n = {}", report.n);
+    println!(
+        "touch error: mean {:.3} mm, rms {:.3} mm, max {:.3} mm",
+        report.touch_mean_mm, report.touch_rms_mm, report.touch_max_mm
+    );
+    println!(
+        "against the Procrustes fit of the touches: {:.3} mm, {:.4} deg",
+        report.procrustes_linear_error_mm, report.procrustes_angular_error_deg
+    );
+    println!(
+        "within predicted 95% bound: {:.0}%",
+        report.within_predicted_p95 * 100.0
+    );
+    for l in &report.iso9283 {
+        println!(
+            "ISO 9283, location {} ({} touches): AP {:.3} mm, RP {:.3} mm",
+            l.location, l.n, l.accuracy_mm, l.repeatability_mm
+        );
+    }
+}
+
+/// What `agent auto --dry-run` prints: the planned viewpoints and what was
+/// dropped.
+pub fn print_plan(robot: &str, plan: &crate::plan::Plan) {
+    println!(
+        "{robot}: {} viewpoints planned from {} candidates; joint travel {:.2} rad",
+        plan.viewpoints.len(),
+        plan.candidates,
+        plan.travel_rad
+    );
+    for (reason, n) in &plan.dropped {
+        println!("  dropped {n}: {reason}");
+    }
+    for (i, v) in plan.viewpoints.iter().enumerate() {
+        let t = v.base_from_flange.translation.vector;
+        let q: Vec<String> = v.q.iter().map(|x| format!("{x:.3}")).collect();
+        println!(
+            "  {:2}: q = [{}] rad; flange at [{:.3}, {:.3}, {:.3}] m; distance {:.2} m, tilt {:.0} deg, roll {:.0} deg",
+            i + 1,
+            q.join(", "),
+            t.x,
+            t.y,
+            t.z,
+            v.distance_m,
+            v.tilt_rad.to_degrees(),
+            v.roll_rad.to_degrees()
+        );
+    }
+}
+
+/// What an agent prints when the coordinator's result arrives, or the error
+/// when it does not within `wait_result_s`.
+pub fn print_agent_result(
+    robot: &str,
+    result: Option<CalibrationResult>,
+    wait_result_s: u64,
+) -> anyhow::Result<()> {
+    let r = result
+        .with_context(|| format!("no result from the coordinator within {wait_result_s} s"))?;
+    let t = r.base1_from_base2.t;
+    println!(
+        "{robot}: coordinator result T_base1_base2 t = [{:.6}, {:.6}, {:.6}] m",
+        t[0], t[1], t[2]
+    );
+    Ok(())
+}
+
+/// What `coordinator report` reports on: the result, its verification, the
+/// hand-eyes' per-capture residuals and each touch's error against its bound.
+pub fn report_inputs(
+    result: &Path,
+    verify: Option<&Path>,
+    hand_eye: &[PathBuf],
+    touch_points: Option<&Path>,
+    tip_sigma_m: f64,
+) -> anyhow::Result<b2b_report::ReportInputs> {
+    let mut inputs = b2b_report::ReportInputs::from_files(result, verify)?;
+    for f in hand_eye {
+        inputs.add_hand_eye_file(f)?;
+    }
+    if let Some(tp) = touch_points {
+        let touches = b2b_dataset::read_touch_points(tp)?;
+        let (_, m) = b2b_pipeline::verify(&inputs.result, &touches, tip_sigma_m)?;
+        inputs.touches = touches
+            .iter()
+            .zip(m.errors_m.iter().zip(&m.bound95_m))
+            .map(|(t, (e, b))| b2b_report::TouchDetail {
+                row: t.row,
+                error_m: *e,
+                bound95_m: *b,
+            })
+            .collect();
+    }
+    Ok(inputs)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

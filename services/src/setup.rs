@@ -18,7 +18,9 @@ use b2b_robot::{Arm, IiwaModel, WorkspaceBox};
 use kuka_fri::{FriClient, FriClientConfig, SafetyGuard};
 use serde::{Deserialize, Serialize};
 
-use crate::live::{FrameSource, LiveConfig, LiveMode, LiveSource, LiveTarget};
+use b2b_routine::Mode;
+
+use crate::live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource, LiveTarget};
 use crate::plan::PlanConfig;
 
 /// One cart's setup (`--setup FILE`, JSON).
@@ -45,6 +47,10 @@ pub struct CellSetup {
     /// Fraction of the rated joint velocities and accelerations the routine uses.
     #[serde(default = "default_speed")]
     pub speed_fraction: f64,
+    /// The camera process publishes a depth image with each colour frame (a
+    /// RealSense does; a simulated scene without `depth` does not).
+    #[serde(default = "default_depth")]
+    pub depth: bool,
     /// The file this setup was read from (or stands for), which relative paths
     /// in it are taken from.
     #[serde(skip)]
@@ -61,6 +67,11 @@ pub fn default_speed() -> f64 {
     1.0
 }
 
+/// Default of `depth`.
+pub fn default_depth() -> bool {
+    true
+}
+
 impl CellSetup {
     /// Reads a setup file.
     pub fn load(file: &Path) -> anyhow::Result<Self> {
@@ -71,20 +82,13 @@ impl CellSetup {
     }
 
     /// The target as the pipeline knows it (one model for datasets and live
-    /// agents). A target with a symmetry (a checkerboard with `cols + rows` even)
-    /// is refused: the agent publishes each capture as it is taken and cannot
-    /// choose its labelling from motion the way the offline pipeline does.
+    /// agents). A target with a symmetry (a checkerboard with `cols + rows`
+    /// even) is labelled capture by capture from `T_base_target_approx`
+    /// ([`crate::live::LiveTarget::observe`]): for such a board the setup sheet
+    /// must also say which corner is the origin, and both carts' sheets the
+    /// same corner.
     pub fn target_spec(&self) -> anyhow::Result<TargetSpec> {
-        let spec = TargetSpec::from_manifest(&self.target, &self.source)?;
-        anyhow::ensure!(
-            spec.symmetry().is_trivial(),
-            "{}: a {} looks the same turned by 180°, and the live agent cannot choose its \
-             labelling capture by capture; use an asymmetric board (e.g. 9x6 inner corners \
-             = 10x7 squares) or a ChArUco board, or calibrate offline from a dataset",
-            self.source.display(),
-            spec.describe()
-        );
-        Ok(spec)
+        Ok(TargetSpec::from_manifest(&self.target, &self.source)?)
     }
 
     /// Refuses a setup that cannot be used (bad poses, target, margin or speed).
@@ -138,7 +142,7 @@ pub struct Connection {
 pub fn live_source(
     setup: &CellSetup,
     robot: &str,
-    mode: LiveMode,
+    mode: Mode,
     plan: PlanConfig,
     fri: FriClient,
     frames: Box<dyn FrameSource>,
@@ -177,4 +181,127 @@ pub fn fri_client(setup: &CellSetup, conn: &Connection) -> anyhow::Result<FriCli
     config.controller = conn.controller;
     FriClient::start(config, setup.guard()?)
         .with_context(|| format!("cannot start the FRI client on {}", conn.bind))
+}
+
+/// Options of the live sources (`--sim`, `--fri`) of `agent run` and `agent auto`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct LiveArgs {
+    /// Cell setup (JSON: arm model, target, approximate board and mount, workspace
+    /// box, whether the camera has depth); required with --fri, derived from the
+    /// scene with --sim.
+    #[arg(long)]
+    pub setup: Option<PathBuf>,
+    /// Where the FRI client binds (the cell's client port).
+    #[arg(long, default_value = "0.0.0.0:30200")]
+    pub fri_bind: SocketAddr,
+    /// The camera's iceoryx2 service root.
+    #[arg(long, default_value = "b2b/camera")]
+    pub camera_prefix: String,
+    /// Viewpoints to plan.
+    #[arg(long, default_value_t = 30)]
+    pub count: usize,
+    /// Seed of the simulated cart (its robot errors and sensor noise).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub noise: crate::RobotNoiseArgs,
+}
+
+/// Where a live agent's arm and camera are.
+#[derive(Debug, Clone, Copy)]
+pub enum Cart<'a> {
+    /// The simulated cart of a scene file, started as a child process.
+    Sim(&'a Path),
+    /// A real controller over KUKA FRI at `HOST:PORT`.
+    Fri(&'a str),
+}
+
+impl<'a> Cart<'a> {
+    /// From `--sim` / `--fri` (clap keeps them exclusive).
+    pub fn from_flags(sim: Option<&'a Path>, fri: Option<&'a str>) -> anyhow::Result<Self> {
+        match (sim, fri) {
+            (Some(scene), None) => Ok(Self::Sim(scene)),
+            (None, Some(addr)) => Ok(Self::Fri(addr)),
+            _ => anyhow::bail!("give a source: --sim SCENE or --fri HOST:PORT"),
+        }
+    }
+}
+
+/// Connects to the arm and camera of `cart`: the live source, and for a
+/// simulated cart its process (kept alive while the source is used).
+pub fn connect(
+    robot: &str,
+    cart: Cart<'_>,
+    live: &LiveArgs,
+    mode: Mode,
+    features: Option<b2b_vision::features::FeatureKind>,
+) -> anyhow::Result<(LiveSource, Option<crate::sim_cart::CartProcess>)> {
+    b2b_protocol::messages::validate_robot_id(robot)?;
+    b2b_frames::quiet_iceoryx2_logs();
+    let plan = PlanConfig {
+        count: live.count,
+        ..Default::default()
+    };
+    let (setup, conn) = match cart {
+        Cart::Sim(scene) => {
+            let setup = match &live.setup {
+                Some(f) => CellSetup::load(f)?,
+                // The simulated cart's own binary derives the setup from the scene
+                // (board and mount off by a setup sheet's error); the target's
+                // files go into a folder of this agent process.
+                None => {
+                    let dir = std::env::temp_dir()
+                        .join(format!("b2b-agent-{}-{robot}", std::process::id()));
+                    CellSetup::load(&crate::sim_cart::derive_setup(
+                        &crate::sim_cart::exe()?,
+                        scene,
+                        robot,
+                        &dir,
+                    )?)?
+                }
+            };
+            // A unique service root per run, so two simulated cells never mix.
+            let conn = Connection {
+                bind: "127.0.0.1:0".parse()?,
+                controller: None,
+                camera_prefix: format!("{}/sim{}", live.camera_prefix, std::process::id()),
+            };
+            (setup, conn)
+        }
+        Cart::Fri(addr) => {
+            let file = live.setup.as_ref().context(
+                "--fri needs --setup FILE (arm model, target, approximate board and mount, workspace)",
+            )?;
+            let controller: SocketAddr = addr
+                .parse()
+                .with_context(|| format!("--fri {addr}: not HOST:PORT"))?;
+            let conn = Connection {
+                bind: live.fri_bind,
+                controller: Some(controller),
+                camera_prefix: live.camera_prefix.clone(),
+            };
+            (CellSetup::load(file)?, conn)
+        }
+    };
+    let fri = fri_client(&setup, &conn)?;
+    let mut frames = IceoryxFrames::new(&conn.camera_prefix, robot)?;
+    let features = features.map(b2b_pipeline::rgbd::RgbdOptions::with_kind);
+    if features.is_some() && setup.depth {
+        frames = frames.with_depth(&conn.camera_prefix, robot)?;
+    }
+    let process = match cart {
+        Cart::Sim(scene) => Some(crate::sim_cart::spawn(
+            &crate::sim_cart::exe()?,
+            &crate::sim_cart::CartRun {
+                scene,
+                robot,
+                client: fri.local_addr(),
+                seed: live.seed,
+                camera_prefix: &conn.camera_prefix,
+            },
+        )?),
+        Cart::Fri(_) => None,
+    };
+    let source = live_source(&setup, robot, mode, plan, fri, Box::new(frames), features)?;
+    Ok((source, process))
 }

@@ -5,7 +5,8 @@
 //!
 //! - `b2b-sim-cart setup --scene FILE --robot ID --dir DIR` writes the cell setup
 //!   the agent is given for this cart (`DIR/setup-ID.json`, and the target's
-//!   files) and prints `{"setup": path, "depth": bool}`.
+//!   files; `depth` says whether the camera renders depth) and prints
+//!   `{"setup": path}`.
 //! - `b2b-sim-cart run --scene FILE --robot ID --client ADDR` runs the cart: an
 //!   FRI server answering `ADDR` and the camera rendering into iceoryx2.
 
@@ -77,8 +78,7 @@ fn main() -> std::process::ExitCode {
                 let file = dir.join(format!("setup-{robot}.json"));
                 std::fs::write(&file, serde_json::to_string_pretty(&setup)?)
                     .with_context(|| format!("cannot write {}", file.display()))?;
-                let depth = b2b_sim::scene::Scene::load(&scene)?.depth.is_some();
-                println!("{}", serde_json::json!({ "setup": file, "depth": depth }));
+                println!("{}", serde_json::json!({ "setup": file }));
                 Ok(())
             }
             Command::Run {
@@ -116,13 +116,4 @@ fn main() -> std::process::ExitCode {
     })
 }
 
-#[cfg(test)]
-mod tests {
-    use clap::CommandFactory;
-
-    #[test]
-    fn every_flag_has_help() {
-        let missing = b2b_services::undocumented_args(&super::Cli::command());
-        assert!(missing.is_empty(), "flags without help: {missing:?}");
-    }
-}
+b2b_services::every_flag_has_help!(Cli);

@@ -57,6 +57,7 @@ pub fn cell_setup(scene_file: &Path, robot: &str, dir: &Path) -> anyhow::Result<
         workspace_max: [1.1, 0.9, 1.3],
         joint_margin_rad: default_margin(),
         speed_fraction: default_speed(),
+        depth: scene.depth.is_some(),
         source: dir.join(format!("setup-{robot}.json")),
     };
     setup.check()?;

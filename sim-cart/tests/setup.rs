@@ -1,7 +1,8 @@
 //! The simulated cart's binary: the setup it derives for an agent, and its errors.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
+
+use b2b_services::sim_cart::derive_setup;
 
 fn scene(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -10,30 +11,23 @@ fn scene(name: &str) -> PathBuf {
         .join("scene.json")
 }
 
-fn setup(scene: &Path, robot: &str, dir: &Path) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_b2b-sim-cart"))
-        .args(["setup", "--robot", robot, "--scene"])
-        .arg(scene)
-        .arg("--dir")
-        .arg(dir)
-        .output()
-        .unwrap()
+fn setup(scene: &Path, robot: &str, dir: &Path) -> anyhow::Result<PathBuf> {
+    derive_setup(
+        Path::new(env!("CARGO_BIN_EXE_b2b-sim-cart")),
+        scene,
+        robot,
+        dir,
+    )
 }
 
 #[test]
 fn the_derived_setup_is_near_the_truth_but_never_it() {
     let dir = tempfile::tempdir().unwrap();
-    let out = setup(&scene("sim-checkerboard-2x12"), "robot2", dir.path());
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let answer: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    let file = PathBuf::from(answer["setup"].as_str().unwrap());
+    let file = setup(&scene("sim-checkerboard-2x12"), "robot2", dir.path()).unwrap();
     assert_eq!(file, dir.path().join("setup-robot2.json"));
-    assert_eq!(answer["depth"], serde_json::Value::Bool(false));
     let setup = b2b_services::setup::CellSetup::load(&file).unwrap();
+    // This scene renders no depth, and the setup says so.
+    assert!(!setup.depth);
     setup.target_spec().unwrap();
     setup.guard().unwrap();
     // The board is off by a setup sheet's error: about 2 cm and 4°, not zero.
@@ -54,11 +48,10 @@ fn the_derived_setup_is_near_the_truth_but_never_it() {
 #[test]
 fn a_robot_not_in_the_scene_is_named() {
     let dir = tempfile::tempdir().unwrap();
-    let out = setup(&scene("sim-checkerboard-2x12"), "robot9", dir.path());
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let err = setup(&scene("sim-checkerboard-2x12"), "robot9", dir.path()).unwrap_err();
+    let message = format!("{err:#}");
     assert!(
-        stderr.contains("robot 'robot9' is not in") && stderr.contains("scene.json"),
-        "{stderr}"
+        message.contains("robot 'robot9' is not in") && message.contains("scene.json"),
+        "{message}"
     );
 }

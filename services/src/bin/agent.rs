@@ -5,16 +5,19 @@
 //! process.
 
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
-use b2b_pipeline::{HandEyeChoice, hand_eye, load_dataset, observe_robot};
-use std::sync::Arc;
-
-use b2b_services::{
-    RerunArgs, RobotNoiseArgs, finish_recording, init_logging, run_main, write_json,
-};
+use b2b_pipeline::{HandEyeChoice, RobotCamera, hand_eye, load_dataset, observe_robot};
+use b2b_routine::{Mode, RoutineConfig};
+use b2b_services::agent::{AgentOptions, BusArgs, run_agent, run_replay};
+use b2b_services::outputs::{print_agent_result, print_hand_eye, print_plan};
+use b2b_services::recording::{RerunArgs, finish_recording, log_hand_eye_run};
+use b2b_services::setup::{Cart, LiveArgs, connect};
+use b2b_services::{RobotNoiseArgs, init_logging, run_main, stop_flag, write_json};
+use b2b_vision::features::FeatureKind;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
@@ -45,13 +48,6 @@ enum Command {
         fri: Option<String>,
         #[command(flatten)]
         live: LiveArgs,
-        /// zenoh configuration file (JSON5); default: loopback peer connecting to
-        /// the coordinator on tcp/127.0.0.1:7447.
-        #[arg(long)]
-        zenoh: Option<PathBuf>,
-        /// Where the agent keeps its sequence number.
-        #[arg(long, default_value = "agent-state")]
-        state_dir: PathBuf,
         /// Milliseconds between replayed captures.
         #[arg(long, default_value_t = 0)]
         pace_ms: u64,
@@ -60,12 +56,8 @@ enum Command {
         /// (captures without depth never carry features).
         #[arg(long, default_value = "sift")]
         features: String,
-        /// Seconds to wait for the coordinator's result after the last capture.
-        #[arg(long, default_value_t = 600)]
-        wait_result_s: u64,
-        /// No progress bar.
-        #[arg(long)]
-        quiet: bool,
+        #[command(flatten)]
+        bus: BusArgs,
         #[command(flatten)]
         rerun: RerunArgs,
     },
@@ -94,19 +86,8 @@ enum Command {
         /// ... with at least this many good captures.
         #[arg(long, default_value_t = 20)]
         min_good: usize,
-        /// zenoh configuration file (JSON5); default: loopback peer connecting to
-        /// the coordinator on tcp/127.0.0.1:7447.
-        #[arg(long)]
-        zenoh: Option<PathBuf>,
-        /// Where the agent keeps its sequence number.
-        #[arg(long, default_value = "agent-state")]
-        state_dir: PathBuf,
-        /// Seconds to wait for the coordinator's result after the last capture.
-        #[arg(long, default_value_t = 600)]
-        wait_result_s: u64,
-        /// No progress bar.
-        #[arg(long)]
-        quiet: bool,
+        #[command(flatten)]
+        bus: BusArgs,
         #[command(flatten)]
         live: LiveArgs,
         #[command(flatten)]
@@ -143,192 +124,36 @@ enum Command {
     },
 }
 
-/// Options of the live sources (`--sim`, `--fri`).
-#[derive(clap::Args, Debug, Clone)]
-struct LiveArgs {
-    /// Cell setup (JSON: arm model, target, approximate board and mount, workspace
-    /// box); required with --fri, derived from the scene with --sim.
-    #[arg(long)]
-    setup: Option<PathBuf>,
-    /// Where the FRI client binds (the cell's client port).
-    #[arg(long, default_value = "0.0.0.0:30200")]
-    fri_bind: std::net::SocketAddr,
-    /// The camera's iceoryx2 service root.
-    #[arg(long, default_value = "b2b/camera")]
-    camera_prefix: String,
-    /// Viewpoints to plan.
-    #[arg(long, default_value_t = 30)]
-    count: usize,
-    /// Seed of the simulated cart (its robot errors and sensor noise).
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    #[command(flatten)]
-    noise: RobotNoiseArgs,
-}
-
-/// Kills the simulated cart when the agent ends.
-struct Child(std::process::Child);
-
-impl Drop for Child {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// The simulated cart's binary: `B2B_SIM_CART`, or `b2b-sim-cart` beside the
-/// agent's own executable (cargo builds both into one folder).
-fn sim_cart_exe() -> anyhow::Result<PathBuf> {
-    if let Some(p) = std::env::var_os("B2B_SIM_CART") {
-        return Ok(PathBuf::from(p));
-    }
-    let exe = std::env::current_exe().context("cannot find the agent's own executable")?;
-    let cart = exe.with_file_name(format!("b2b-sim-cart{}", std::env::consts::EXE_SUFFIX));
-    anyhow::ensure!(
-        cart.is_file(),
-        "the simulated cart's binary is not at {} (build it with `cargo build -p b2b-sim-cart`, or set B2B_SIM_CART)",
-        cart.display()
-    );
-    Ok(cart)
-}
-
-/// What `b2b-sim-cart setup` reports.
-#[derive(Debug, serde::Deserialize)]
-struct DerivedSetup {
-    setup: PathBuf,
-    depth: bool,
-}
-
-/// Runs `b2b-sim-cart setup` for `robot` of `scene` into `dir`.
-fn sim_cart_setup(
-    scene: &std::path::Path,
+/// The options every run on the bus shares.
+fn agent_options(
     robot: &str,
-    dir: &std::path::Path,
-) -> anyhow::Result<DerivedSetup> {
-    let out = std::process::Command::new(sim_cart_exe()?)
-        .args(["setup", "--robot", robot, "--scene"])
-        .arg(scene)
-        .arg("--dir")
-        .arg(dir)
-        .stdin(std::process::Stdio::null())
-        .output()
-        .context("cannot start the simulated cart")?;
-    anyhow::ensure!(
-        out.status.success(),
-        "the simulated cart refused {}: {}",
-        scene.display(),
-        String::from_utf8_lossy(&out.stderr).trim()
-    );
-    serde_json::from_slice(&out.stdout).with_context(|| {
-        format!(
-            "the simulated cart's setup answer is not JSON: {}",
-            String::from_utf8_lossy(&out.stdout).trim()
-        )
+    bus: BusArgs,
+    pace: Duration,
+    refine: RefineOptions,
+    rerun: &RerunArgs,
+) -> anyhow::Result<AgentOptions> {
+    Ok(AgentOptions {
+        robot: robot.to_owned(),
+        zenoh: bus.zenoh,
+        state_dir: bus.state_dir,
+        pace,
+        wait_result: Duration::from_secs(bus.wait_result_s),
+        progress: !bus.quiet,
+        refine,
+        rerun: Arc::new(rerun.recorder(&format!("b2b-agent-{robot}"))?),
     })
 }
 
-/// Connects to the arm and camera of `--sim` or `--fri`; returns the source and,
-/// for `--sim`, the cart process.
-fn connect(
-    robot: &str,
-    sim: Option<&std::path::Path>,
-    fri: Option<&str>,
-    live: &LiveArgs,
-    mode: b2b_services::live::LiveMode,
-    features: Option<b2b_vision::features::FeatureKind>,
-) -> anyhow::Result<(b2b_services::live::LiveSource, Option<Child>)> {
-    use b2b_services::setup::{CellSetup, Connection, fri_client, live_source};
-    b2b_protocol::messages::validate_robot_id(robot)?;
-    b2b_frames::quiet_iceoryx2_logs();
-    let plan = b2b_services::plan::PlanConfig {
-        count: live.count,
-        ..Default::default()
-    };
-    let mut has_depth = true;
-    let (setup, conn, cart_scene) = match (sim, fri) {
-        (Some(scene), None) => {
-            // The simulated cart's own binary derives the setup from the scene
-            // (board and mount off by a setup sheet's error); the target's files
-            // go into a folder of this agent process.
-            let derived = sim_cart_setup(
-                scene,
-                robot,
-                &std::env::temp_dir().join(format!("b2b-agent-{}-{robot}", std::process::id())),
-            )?;
-            has_depth = derived.depth;
-            let setup = match &live.setup {
-                Some(f) => CellSetup::load(f)?,
-                None => CellSetup::load(&derived.setup)?,
-            };
-            // A unique service root per run, so two simulated cells never mix.
-            let prefix = format!("{}/sim{}", live.camera_prefix, std::process::id());
-            let conn = Connection {
-                bind: "127.0.0.1:0".parse()?,
-                controller: None,
-                camera_prefix: prefix,
-            };
-            (setup, conn, Some(scene.to_owned()))
-        }
-        (None, Some(addr)) => {
-            let file = live
-                .setup
-                .as_ref()
-                .context("--fri needs --setup FILE (arm model, target, approximate board and mount, workspace)")?;
-            let controller: std::net::SocketAddr = addr
-                .parse()
-                .with_context(|| format!("--fri {addr}: not HOST:PORT"))?;
-            let conn = Connection {
-                bind: live.fri_bind,
-                controller: Some(controller),
-                camera_prefix: live.camera_prefix.clone(),
-            };
-            (CellSetup::load(file)?, conn, None)
-        }
-        _ => anyhow::bail!("give a source: --sim SCENE or --fri HOST:PORT"),
-    };
-    let fri = fri_client(&setup, &conn)?;
-    let mut frames = b2b_services::live::IceoryxFrames::new(&conn.camera_prefix, robot)?;
-    let features = features.map(b2b_pipeline::rgbd::RgbdOptions::with_kind);
-    // A simulated camera has depth only when its scene says so.
-    if features.is_some() && has_depth {
-        frames = frames.with_depth(&conn.camera_prefix, robot)?;
-    }
-    let child = match cart_scene {
-        Some(scene) => {
-            let child = std::process::Command::new(sim_cart_exe()?)
-                .args(["run", "--robot", robot, "--client"])
-                .arg(fri.local_addr().to_string())
-                .arg("--scene")
-                .arg(&scene)
-                .args(["--seed", &live.seed.to_string()])
-                .args(["--camera-prefix", &conn.camera_prefix])
-                .stdin(std::process::Stdio::null())
-                .spawn()
-                .context("cannot start the simulated cart")?;
-            Some(Child(child))
-        }
-        None => None,
-    };
-    let source = live_source(&setup, robot, mode, plan, fri, Box::new(frames), features)?;
-    Ok((source, child))
-}
-
-fn print_result(
-    robot: &str,
-    result: Option<b2b_protocol::CalibrationResult>,
-    wait_result_s: u64,
+/// Closes the run's recording (after the source, which may hold a clone, is
+/// gone), then reports the coordinator's result.
+fn finish(
+    opts: AgentOptions,
+    result: anyhow::Result<Option<b2b_protocol::CalibrationResult>>,
 ) -> anyhow::Result<()> {
-    match result {
-        Some(r) => {
-            let t = r.base1_from_base2.t;
-            println!(
-                "{robot}: coordinator result T_base1_base2 t = [{:.6}, {:.6}, {:.6}] m",
-                t[0], t[1], t[2]
-            );
-            Ok(())
-        }
-        None => anyhow::bail!("no result from the coordinator within {wait_result_s} s"),
+    if let Ok(rec) = Arc::try_unwrap(opts.rerun) {
+        finish_recording(rec);
     }
+    print_agent_result(&opts.robot, result?, opts.wait_result.as_secs())
 }
 
 fn main() -> std::process::ExitCode {
@@ -340,66 +165,28 @@ fn main() -> std::process::ExitCode {
             replay,
             sim,
             fri,
-            zenoh,
-            state_dir,
             pace_ms,
             features,
-            wait_result_s,
-            quiet,
+            bus,
             live,
             rerun,
         } => {
             let features = match features.as_str() {
                 "none" => None,
-                kind => Some(b2b_vision::features::FeatureKind::parse(kind)?),
+                kind => Some(FeatureKind::parse(kind)?),
             };
-            let recorder = Arc::new(rerun.recorder(&format!("b2b-agent-{robot}"))?);
-            let outcome = (|| {
-                if sim.is_some() || fri.is_some() {
-                    let stop = b2b_services::stop_flag();
-                    let (mut source, _cart) = connect(
-                        &robot,
-                        sim.as_deref(),
-                        fri.as_deref(),
-                        &live,
-                        b2b_services::live::LiveMode::Program,
-                        features,
-                    )?;
-                    let opts = b2b_services::agent::AgentOptions {
-                        robot: robot.clone(),
-                        zenoh,
-                        state_dir,
-                        pace: Duration::from_millis(pace_ms),
-                        wait_result: Duration::from_secs(wait_result_s),
-                        progress: !quiet,
-                        refine: live.noise.options()?,
-                        rerun: Arc::clone(&recorder),
-                    };
-                    let result = b2b_services::agent::run_agent(&opts, &mut source, &stop)?;
-                    return print_result(&robot, result, wait_result_s);
-                }
-                let Some(dataset) = replay else {
-                    anyhow::bail!("give a source: --replay DIR, --sim SCENE or --fri HOST:PORT");
-                };
-                let stop = b2b_services::stop_flag();
-                let opts = b2b_services::agent::ReplayOptions {
-                    robot: robot.clone(),
-                    dataset,
-                    zenoh,
-                    state_dir,
-                    pace: Duration::from_millis(pace_ms),
-                    wait_result: Duration::from_secs(wait_result_s),
-                    progress: !quiet,
-                    rerun: Arc::clone(&recorder),
-                    features,
-                };
-                let result = b2b_services::agent::run_replay(&opts, &stop)?;
-                print_result(&robot, result, wait_result_s)
-            })();
-            if let Ok(rec) = Arc::try_unwrap(recorder) {
-                finish_recording(rec);
-            }
-            outcome
+            let pace = Duration::from_millis(pace_ms);
+            let opts = agent_options(&robot, bus, pace, live.noise.options(), &rerun)?;
+            let stop = stop_flag();
+            let result = match (replay, Cart::from_flags(sim.as_deref(), fri.as_deref())) {
+                (Some(dataset), _) => run_replay(&opts, &dataset, features, &stop),
+                (None, Ok(cart)) => connect(&robot, cart, &live, Mode::Program, features)
+                    .and_then(|(mut source, _cart)| run_agent(&opts, &mut source, &stop)),
+                (None, Err(_)) => Err(anyhow::anyhow!(
+                    "give a source: --replay DIR, --sim SCENE or --fri HOST:PORT"
+                )),
+            };
+            finish(opts, result)
         }
         Command::Auto {
             robot,
@@ -409,76 +196,29 @@ fn main() -> std::process::ExitCode {
             stop_sigma_mm,
             stop_sigma_deg,
             min_good,
-            zenoh,
-            state_dir,
-            wait_result_s,
-            quiet,
+            bus,
             live,
             rerun,
         } => {
-            let auto = b2b_services::live::AutoConfig {
+            let routine = RoutineConfig {
                 stop_sigma_t_m: stop_sigma_mm * 1e-3,
                 stop_sigma_r_rad: stop_sigma_deg.to_radians(),
                 min_good,
                 ..Default::default()
             };
-            auto.validate()
+            routine
+                .validate()
                 .context("--stop-sigma-mm and --stop-sigma-deg must be > 0")?;
-            let stop = b2b_services::stop_flag();
-            let (mut source, _cart) = connect(
-                &robot,
-                sim.as_deref(),
-                fri.as_deref(),
-                &live,
-                b2b_services::live::LiveMode::Auto(auto),
-                None,
-            )?;
+            let cart = Cart::from_flags(sim.as_deref(), fri.as_deref())?;
+            let (mut source, _cart) = connect(&robot, cart, &live, Mode::Auto(routine), None)?;
             if dry_run {
-                let plan = source.plan_only()?.clone();
-                println!(
-                    "{robot}: {} viewpoints planned from {} candidates; joint travel {:.2} rad",
-                    plan.viewpoints.len(),
-                    plan.candidates,
-                    plan.travel_rad
-                );
-                for (reason, n) in &plan.dropped {
-                    println!("  dropped {n}: {reason}");
-                }
-                for (i, v) in plan.viewpoints.iter().enumerate() {
-                    let t = v.base_from_flange.translation.vector;
-                    println!(
-                        "  {:2}: q = [{}] rad; flange at [{:.3}, {:.3}, {:.3}] m; distance {:.2} m, tilt {:.0} deg, roll {:.0} deg",
-                        i + 1,
-                        v.q.iter()
-                            .map(|x| format!("{x:.3}"))
-                            .collect::<Vec<_>>()
-                            .join(", "),
-                        t.x,
-                        t.y,
-                        t.z,
-                        v.distance_m,
-                        v.tilt_rad.to_degrees(),
-                        v.roll_rad.to_degrees()
-                    );
-                }
+                print_plan(&robot, source.plan_only()?);
                 return Ok(());
             }
-            let opts = b2b_services::agent::AgentOptions {
-                robot: robot.clone(),
-                zenoh,
-                state_dir,
-                pace: Duration::ZERO,
-                wait_result: Duration::from_secs(wait_result_s),
-                progress: !quiet,
-                refine: live.noise.options()?,
-                rerun: Arc::new(rerun.recorder(&format!("b2b-agent-{robot}"))?),
-            };
-            let result = b2b_services::agent::run_agent(&opts, &mut source, &stop);
+            let opts = agent_options(&robot, bus, Duration::ZERO, live.noise.options(), &rerun)?;
+            let result = run_agent(&opts, &mut source, &stop_flag());
             drop(source);
-            if let Ok(rec) = Arc::try_unwrap(opts.rerun) {
-                finish_recording(rec);
-            }
-            print_result(&robot, result?, wait_result_s)
+            finish(opts, result)
         }
         Command::Handeye {
             dataset,
@@ -491,45 +231,16 @@ fn main() -> std::process::ExitCode {
         } => {
             let recorder = rerun.recorder(&format!("b2b-handeye-{robot}"))?;
             let choice: HandEyeChoice = method.parse().map_err(anyhow::Error::msg)?;
-            let ds = load_dataset(&dataset)?;
-            let obs = observe_robot(&ds, &robot)?;
+            let obs = observe_robot(&load_dataset(&dataset)?, &robot)?;
             let options = RefineOptions {
                 refine_intrinsics,
-                ..noise.options()?
+                ..noise.options()
             };
             let run = hand_eye(&obs, choice, &options)?;
             write_json(&out, &run.result).context("writing the hand-eye result")?;
-            let r = &run.result;
-            let t = r.flange_from_camera.t;
-            let q = r.flange_from_camera.q;
-            println!("robot {robot}: method {}", r.method);
-            println!(
-                "captures: {} used, {} rejected",
-                obs.observations.len(),
-                r.captures.rejected.len()
-            );
-            for rej in &r.captures.rejected {
-                println!(
-                    "  rejected {}: {}",
-                    rej.image.as_deref().unwrap_or("-"),
-                    rej.reason
-                );
-            }
-            println!(
-                "T_flange_camera t = [{:.6}, {:.6}, {:.6}] m",
-                t[0], t[1], t[2]
-            );
-            println!(
-                "                q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
-                q[0], q[1], q[2], q[3]
-            );
-            b2b_services::outputs::print_sigma(&r.covariance);
-            println!(
-                "reprojection RMS {:.3} px; detect {:.0} ms, solve {:.0} ms",
-                r.reprojection_rms_px, r.timings_ms.detect, r.timings_ms.solve
-            );
+            print_hand_eye(&run, &obs);
             if obs.estimated_intrinsics.is_some() || refine_intrinsics {
-                let camera = b2b_pipeline::RobotCamera {
+                let camera = RobotCamera {
                     robot: robot.clone(),
                     camera: run.estimate.camera.clone(),
                     refined: choice == HandEyeChoice::Refined,
@@ -537,39 +248,7 @@ fn main() -> std::process::ExitCode {
                 };
                 println!("{}", camera.describe());
             }
-            if recorder.is_enabled() {
-                let x = r.flange_from_camera.to_isometry("T_flange_camera")?;
-                let c = &obs.camera;
-                let intr = b2b_protocol::messages::Intrinsics {
-                    width: c.width,
-                    height: c.height,
-                    fx: c.fx,
-                    fy: c.fy,
-                    cx: c.cx,
-                    cy: c.cy,
-                    dist: c.dist[..5].to_vec(),
-                };
-                let base = b2b_viz::Base::One;
-                let logged = recorder.log_hand_eye(base, &x, &intr).and_then(|()| {
-                    obs.observations.iter().enumerate().try_for_each(|(i, o)| {
-                        recorder.set_capture_time(i as u64, i as f64);
-                        recorder.log_flange(base, &o.board.base_from_flange)?;
-                        recorder.log_corners(
-                            base,
-                            &o.board
-                                .pixels
-                                .iter()
-                                .map(|p| [p.x, p.y])
-                                .collect::<Vec<_>>(),
-                            &[],
-                        )?;
-                        recorder.log_residual(base, o.pnp_rms_px)
-                    })
-                });
-                if let Err(e) = logged {
-                    eprintln!("warning: rerun: {}", b2b_pipeline::error_chain(&e));
-                }
-            }
+            log_hand_eye_run(&recorder, &obs, &run.result)?;
             finish_recording(recorder);
             println!("wrote {}", out.display());
             Ok(())
@@ -577,13 +256,4 @@ fn main() -> std::process::ExitCode {
     })
 }
 
-#[cfg(test)]
-mod tests {
-    use clap::CommandFactory;
-
-    #[test]
-    fn every_flag_has_help() {
-        let missing = b2b_services::undocumented_args(&super::Cli::command());
-        assert!(missing.is_empty(), "flags without help: {missing:?}");
-    }
-}
+b2b_services::every_flag_has_help!(Cli);

@@ -267,13 +267,4 @@ fn main() -> std::process::ExitCode {
     })
 }
 
-#[cfg(test)]
-mod tests {
-    use clap::CommandFactory;
-
-    #[test]
-    fn every_flag_has_help() {
-        let missing = b2b_services::undocumented_args(&super::Cli::command());
-        assert!(missing.is_empty(), "flags without help: {missing:?}");
-    }
-}
+b2b_services::every_flag_has_help!(Cli);

@@ -5,12 +5,15 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use b2b_calib::refine::RefineOptions;
+use b2b_pipeline::rgbd::RgbdOptions;
 use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, verify};
 use b2b_protocol::CalibrationResult;
-use b2b_services::outputs::{print_result, write_result};
+use b2b_services::outputs::{print_result, print_verification, report_inputs, write_result};
+use b2b_services::recording::{RerunArgs, finish_recording, log_result, log_verification};
 use b2b_services::{
-    RerunArgs, RobotNoiseArgs, finish_recording, init_logging, log_result, read_json, run_main,
-    stop_flag, write_json,
+    RobotNoiseArgs, coordinator, init_logging, non_negative, read_json, run_main, stop_flag,
+    write_json,
 };
 use clap::{Parser, Subcommand};
 
@@ -100,7 +103,7 @@ enum Command {
         #[arg(long)]
         json: Option<PathBuf>,
         /// Each pointer tip's noise (1 sigma, mm), added to the predicted bounds.
-        #[arg(long, default_value_t = 0.0)]
+        #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
         tip_sigma_mm: f64,
         #[command(flatten)]
         rerun: RerunArgs,
@@ -122,77 +125,12 @@ enum Command {
         #[arg(long = "touch-points")]
         touch_points: Option<PathBuf>,
         /// Each pointer tip's noise (1 sigma, mm), for the per-touch bounds.
-        #[arg(long, default_value_t = 0.0)]
+        #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
         tip_sigma_mm: f64,
         /// Output folder (index.html and the plots).
         #[arg(long)]
         out: PathBuf,
     },
-}
-
-/// The RGB-D method with hand-eyes read from HANDEYE.json files, one per robot of
-/// the dataset.
-fn rgbd_with_hand_eye_files(
-    ds: &b2b_dataset::Dataset,
-    files: &[PathBuf],
-) -> anyhow::Result<CalibrationResult> {
-    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
-    anyhow::ensure!(
-        ids.len() == 2,
-        "base-to-base needs two robots, the dataset lists {}",
-        ids.len()
-    );
-    let mut found: Vec<Option<(nalgebra::Isometry3<f64>, nalgebra::Matrix6<f64>)>> =
-        vec![None, None];
-    for path in files {
-        let he: b2b_protocol::HandEyeResult = read_json(path)?;
-        anyhow::ensure!(
-            he.format == b2b_protocol::HANDEYE_FORMAT,
-            "{}: format '{}', expected '{}'",
-            path.display(),
-            he.format,
-            b2b_protocol::HANDEYE_FORMAT
-        );
-        let k = ids.iter().position(|id| *id == he.robot).with_context(|| {
-            format!(
-                "{}: robot '{}' is not in the dataset ({})",
-                path.display(),
-                he.robot,
-                ids.join(", ")
-            )
-        })?;
-        anyhow::ensure!(
-            found[k].is_none(),
-            "{}: a second hand-eye for robot '{}'",
-            path.display(),
-            he.robot
-        );
-        let x = he
-            .flange_from_camera
-            .to_isometry("T_flange_camera")
-            .with_context(|| path.display().to_string())?;
-        let cov = nalgebra::Matrix6::from_fn(|i, j| he.covariance[i][j]);
-        anyhow::ensure!(
-            cov.iter().all(|v| v.is_finite()),
-            "{}: covariance has a non-finite entry",
-            path.display()
-        );
-        found[k] = Some((x, cov));
-    }
-    let (Some(a), Some(b)) = (found[0], found[1]) else {
-        anyhow::bail!(
-            "--hand-eye: need one HANDEYE.json for each of {} and {}",
-            ids[0],
-            ids[1]
-        );
-    };
-    let run = b2b_pipeline::rgbd::rgbd_base_to_base_with_hand_eyes(
-        ds,
-        [a.0, b.0],
-        Some([a.1, b.1]),
-        &b2b_pipeline::rgbd::RgbdOptions::default(),
-    )?;
-    Ok(run.result)
 }
 
 /// `--refine-intrinsics` is for the methods that fit the cameras.
@@ -221,20 +159,19 @@ fn main() -> std::process::ExitCode {
             let recorder = rerun.recorder("b2b-coordinator")?;
             let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
             check_refine_intrinsics(refine_intrinsics, method)?;
-            let stop = stop_flag();
-            let opts = b2b_services::coordinator::RunOptions {
+            let opts = coordinator::RunOptions {
                 zenoh,
                 state_dir,
                 robots: 2,
                 order: robots.clone(),
-                refine: b2b_calib::refine::RefineOptions {
+                refine: RefineOptions {
                     refine_intrinsics,
-                    ..noise.options()?
+                    ..noise.options()
                 },
                 method,
-                rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
+                rgbd: RgbdOptions::default(),
             };
-            let (result, counters) = b2b_services::coordinator::run(&opts, &stop)?;
+            let (result, counters) = coordinator::run(&opts, &stop_flag())?;
             write_result(&out, &result).context("writing the result")?;
             log_result(&recorder, &result, robots.as_deref());
             finish_recording(recorder);
@@ -262,22 +199,21 @@ fn main() -> std::process::ExitCode {
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
             check_refine_intrinsics(refine_intrinsics, method)?;
-            let mut cameras = Vec::new();
-            let result = if hand_eye.is_empty() {
-                let options = b2b_calib::refine::RefineOptions {
+            let (result, cameras) = if hand_eye.is_empty() {
+                let options = RefineOptions {
                     refine_intrinsics,
-                    ..noise.options()?
+                    ..noise.options()
                 };
                 let run = base_to_base_run(&ds, method, &options)?;
-                cameras = run.cameras;
-                run.result
+                (run.result, run.cameras)
             } else {
                 anyhow::ensure!(
                     method == B2bMethod::Rgbd,
                     "--hand-eye is for --method rgbd (the {} method estimates the hand-eyes from its target)",
                     method.name()
                 );
-                rgbd_with_hand_eye_files(&ds, &hand_eye)?
+                let result = coordinator::rgbd_with_hand_eye_files(&ds, &hand_eye)?;
+                (result, vec![])
             };
             write_result(&out, &result).context("writing the result")?;
             let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
@@ -301,97 +237,34 @@ fn main() -> std::process::ExitCode {
             rerun,
         } => {
             let recorder = rerun.recorder("b2b-verify")?;
-            anyhow::ensure!(
-                tip_sigma_mm.is_finite() && tip_sigma_mm >= 0.0,
-                "--tip-sigma-mm must be a number >= 0"
-            );
             let r: CalibrationResult = read_json(&result)?;
-            r.validate()
-                .with_context(|| format!("{}", result.display()))?;
+            r.validate().with_context(|| result.display().to_string())?;
             let touches = b2b_dataset::read_touch_points(&touch_points)?;
             let (report, m) = verify(&r, &touches, tip_sigma_mm * 1e-3)?;
-            println!("touch  error (mm)  bound95 (mm)");
-            for (i, (e, b)) in m.errors_m.iter().zip(&m.bound95_m).enumerate() {
-                println!(
-                    "{:>5}  {:>10.3}  {:>12.3}{}",
-                    i + 1,
-                    e * 1e3,
-                    b * 1e3,
-                    if e > b { "  outside" } else { "" }
-                );
-            }
-            println!("n = {}", report.n);
-            println!(
-                "touch error: mean {:.3} mm, rms {:.3} mm, max {:.3} mm",
-                report.touch_mean_mm, report.touch_rms_mm, report.touch_max_mm
-            );
-            println!(
-                "against the Procrustes fit of the touches: {:.3} mm, {:.4} deg",
-                report.procrustes_linear_error_mm, report.procrustes_angular_error_deg
-            );
-            println!(
-                "within predicted 95% bound: {:.0}%",
-                report.within_predicted_p95 * 100.0
-            );
-            for l in &report.iso9283 {
-                println!(
-                    "ISO 9283, location {} ({} touches): AP {:.3} mm, RP {:.3} mm",
-                    l.location, l.n, l.accuracy_mm, l.repeatability_mm
-                );
-            }
+            print_verification(&report, &m);
             if let Some(path) = json {
                 write_json(&path, &report)?;
                 println!("wrote {}", path.display());
             }
-            if recorder.is_enabled() {
-                log_result(&recorder, &r, None);
-                let b = r.base1_from_base2.to_isometry("T_base1_base2")?;
-                let rows: Vec<b2b_viz::Touch> = touches
-                    .iter()
-                    .zip(&m.bound95_m)
-                    .map(|(t, bound)| b2b_viz::Touch {
-                        row: t.row,
-                        tip1_in_base1: t.tip1_in_base1,
-                        tip2_in_base2: t.tip2_in_base2,
-                        bound95_m: *bound,
-                    })
-                    .collect();
-                if let Err(e) = recorder.log_touches(&b, &rows) {
-                    eprintln!("warning: rerun: {}", b2b_pipeline::error_chain(&e));
-                }
-            }
+            log_verification(&recorder, &r, &touches, &m)?;
             finish_recording(recorder);
             Ok(())
         }
         Command::Report {
             result,
-            verify: verify_file,
+            verify,
             hand_eye,
             touch_points,
             tip_sigma_mm,
             out,
         } => {
-            let mut inputs = b2b_report::ReportInputs::from_files(&result, verify_file.as_deref())?;
-            for f in &hand_eye {
-                inputs.add_hand_eye_file(f)?;
-            }
-            if let Some(tp) = touch_points {
-                anyhow::ensure!(
-                    tip_sigma_mm.is_finite() && tip_sigma_mm >= 0.0,
-                    "--tip-sigma-mm must be a number >= 0"
-                );
-                let touches = b2b_dataset::read_touch_points(&tp)?;
-                let (_, m) = verify(&inputs.result, &touches, tip_sigma_mm * 1e-3)?;
-                inputs.touches = touches
-                    .iter()
-                    .zip(m.errors_m.iter().zip(&m.bound95_m))
-                    .map(|(t, (e, b))| b2b_report::TouchDetail {
-                        row: t.row,
-                        error_m: *e,
-                        bound95_m: *b,
-                    })
-                    .collect();
-            }
+            let inputs = report_inputs(
+                &result,
+                verify.as_deref(),
+                &hand_eye,
+                touch_points.as_deref(),
+                tip_sigma_mm * 1e-3,
+            )?;
             let files = b2b_report::write_report(&inputs, &out)?;
             println!("wrote {}", files.index.display());
             Ok(())
@@ -399,13 +272,4 @@ fn main() -> std::process::ExitCode {
     })
 }
 
-#[cfg(test)]
-mod tests {
-    use clap::CommandFactory;
-
-    #[test]
-    fn every_flag_has_help() {
-        let missing = b2b_services::undocumented_args(&super::Cli::command());
-        assert!(missing.is_empty(), "flags without help: {missing:?}");
-    }
-}
+b2b_services::every_flag_has_help!(Cli);

@@ -164,19 +164,7 @@ pub fn sim_setup(
 ) -> b2b_services::setup::CellSetup {
     let cart = std::path::Path::new(env!("CARGO_BIN_EXE_agent"))
         .with_file_name(format!("b2b-sim-cart{}", std::env::consts::EXE_SUFFIX));
-    let out = std::process::Command::new(&cart)
-        .args(["setup", "--robot", robot, "--scene"])
-        .arg(scene)
-        .arg("--dir")
-        .arg(dir)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {}: {e}", cart.display()));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let answer: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    let file = PathBuf::from(answer["setup"].as_str().unwrap());
+    let file = b2b_services::sim_cart::derive_setup(&cart, scene, robot, dir)
+        .unwrap_or_else(|e| panic!("{e:#}"));
     b2b_services::setup::CellSetup::load(&file).unwrap()
 }

@@ -1,0 +1,97 @@
+//! Starting the simulated cart, its own binary next to the simulator
+//! (`b2b-sim-cart`): the setup it derives for an agent, and the running cart as a
+//! child process. The agent's `--sim` and the end-to-end tests use this one way in.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use anyhow::Context;
+
+/// The simulated cart's binary: `B2B_SIM_CART`, or `b2b-sim-cart` beside this
+/// process's own executable (cargo builds the agent and the cart into one folder).
+pub fn exe() -> anyhow::Result<PathBuf> {
+    if let Some(p) = std::env::var_os("B2B_SIM_CART") {
+        return Ok(PathBuf::from(p));
+    }
+    let own = std::env::current_exe().context("cannot find this process's own executable")?;
+    let cart = own.with_file_name(format!("b2b-sim-cart{}", std::env::consts::EXE_SUFFIX));
+    anyhow::ensure!(
+        cart.is_file(),
+        "the simulated cart's binary is not at {} (build it with `cargo build -p b2b-sim-cart`, or set B2B_SIM_CART)",
+        cart.display()
+    );
+    Ok(cart)
+}
+
+/// What `b2b-sim-cart setup` prints.
+#[derive(Debug, serde::Deserialize)]
+struct SetupAnswer {
+    setup: PathBuf,
+}
+
+/// Runs `exe setup` for `robot` of `scene` into `dir`: the setup file the cart
+/// derived (board and mount off by a setup sheet's error; the target's files
+/// beside it).
+pub fn derive_setup(exe: &Path, scene: &Path, robot: &str, dir: &Path) -> anyhow::Result<PathBuf> {
+    let out = Command::new(exe)
+        .args(["setup", "--robot", robot, "--scene"])
+        .arg(scene)
+        .arg("--dir")
+        .arg(dir)
+        .stdin(Stdio::null())
+        .output()
+        .with_context(|| format!("cannot start the simulated cart {}", exe.display()))?;
+    anyhow::ensure!(
+        out.status.success(),
+        "the simulated cart refused {}: {}",
+        scene.display(),
+        String::from_utf8_lossy(&out.stderr).trim()
+    );
+    let answer: SetupAnswer = serde_json::from_slice(&out.stdout).with_context(|| {
+        format!(
+            "the simulated cart's setup answer is not {{\"setup\": FILE}}: {}",
+            String::from_utf8_lossy(&out.stdout).trim()
+        )
+    })?;
+    Ok(answer.setup)
+}
+
+/// Where and how a simulated cart runs.
+#[derive(Debug, Clone)]
+pub struct CartRun<'a> {
+    pub scene: &'a Path,
+    pub robot: &'a str,
+    /// The agent's FRI client address, which the cart's FRI server answers.
+    pub client: SocketAddr,
+    /// The arm's realisation (its errors) and sensor noise.
+    pub seed: u64,
+    /// The iceoryx2 service root the camera renders into.
+    pub camera_prefix: &'a str,
+}
+
+/// A running simulated cart; killed when dropped.
+#[derive(Debug)]
+pub struct CartProcess(std::process::Child);
+
+impl Drop for CartProcess {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `exe run` for `run`.
+pub fn spawn(exe: &Path, run: &CartRun<'_>) -> anyhow::Result<CartProcess> {
+    let child = Command::new(exe)
+        .args(["run", "--robot", run.robot, "--client"])
+        .arg(run.client.to_string())
+        .arg("--scene")
+        .arg(run.scene)
+        .args(["--seed", &run.seed.to_string()])
+        .args(["--camera-prefix", run.camera_prefix])
+        .stdin(Stdio::null())
+        .spawn()
+        .with_context(|| format!("cannot start the simulated cart {}", exe.display()))?;
+    Ok(CartProcess(child))
+}
