@@ -721,20 +721,44 @@ fn observe_capture_impl(
             "row has neither an image nor T_camera_target".into(),
         ));
     };
-    let (detection, pose) =
-        b2b_vision::load_gray_sized(&path, setup.camera.width, setup.camera.height)
-            .and_then(|img| {
-                setup
-                    .target
-                    .detect_impl(&img, &setup.camera, up_to_symmetry)
-            })
-            .map_err(|e| reject(error_chain(&e)))?;
+    b2b_vision::load_gray_sized(&path, setup.camera.width, setup.camera.height)
+        .and_then(|img| {
+            observe(
+                &img,
+                &setup.camera,
+                &setup.target,
+                cap.base_from_flange,
+                up_to_symmetry,
+            )
+        })
+        .map(|o| Observation {
+            row: cap.row,
+            image: image.clone(),
+            ..o
+        })
+        .map_err(|e| reject(error_chain(&e)))
+}
+
+/// One image of the target from a flange pose: the detection and its pose fit
+/// as the observation every estimator takes. The offline path (each capture of
+/// a dataset) and the live agent (each still frame) both observe through this.
+/// `row` is 0 and `image` `None`: the caller names the capture. With
+/// `up_to_symmetry`, a symmetric target comes back in one of the labellings of
+/// [`TargetSpec::symmetry`], which the caller resolves.
+pub fn observe(
+    img: &b2b_vision::GrayImage,
+    camera: &CameraModel,
+    target: &TargetSpec,
+    base_from_flange: Iso3,
+    up_to_symmetry: bool,
+) -> Result<Observation, VisionError> {
+    let (detection, pose) = target.detect_impl(img, camera, up_to_symmetry)?;
     Ok(Observation {
-        row: cap.row,
-        image,
+        row: 0,
+        image: None,
         camera_from_target: pose.camera_from_target,
         board: BoardCapture {
-            base_from_flange: cap.base_from_flange,
+            base_from_flange,
             target_points: detection.target_points,
             pixels: detection.pixels,
         },

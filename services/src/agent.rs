@@ -266,7 +266,8 @@ impl CaptureSource for ReplaySource {
     }
 }
 
-fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
+/// The wire form of a camera model (the five OpenCV distortion terms).
+pub fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
     Intrinsics {
         width: c.width,
         height: c.height,

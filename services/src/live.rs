@@ -109,25 +109,33 @@ impl LiveTarget {
         };
         let sharpness = img.laplacian_variance().ok();
         let symmetry = self.spec.symmetry();
-        let detected = if symmetry.is_trivial() {
-            self.spec.detect(&img, &frame.camera)
-        } else {
-            self.spec.detect_up_to_symmetry(&img, &frame.camera)
-        };
-        let (mut detection, mut pose) = match detected {
-            Ok(d) => d,
+        let mut o = match b2b_pipeline::observe(
+            &img,
+            &frame.camera,
+            &self.spec,
+            base_from_flange,
+            !symmetry.is_trivial(),
+        ) {
+            Ok(o) => Observation {
+                row,
+                image: Some(name.clone()),
+                ..o
+            },
             Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
         };
         if !symmetry.is_trivial() {
             let l = symmetry.label_by_prior(
-                &pose.camera_from_target,
+                &o.camera_from_target,
                 expected_camera_from_target,
                 PRIOR_LABELLING_MAX_RAD,
             );
             let Some(k) = l.element else {
                 return (
                     Err(reject(format!(
-                        "{} looks the same turned, and where the board is believed to be cannot                          tell which way: the nearest labelling is {:.0}° from it, the next {:.0}°                          (needs within {:.0}° and {:.0}° apart; check T_base_target_approx in the                          setup)",
+                        "{} looks the same turned, and where the board is believed to be cannot \
+                         tell which way: the nearest labelling is {:.0}° from it, the next {:.0}° \
+                         (needs within {:.0}° and {:.0}° apart; check T_base_target_approx in the \
+                         setup)",
                         self.spec.describe(),
                         l.best_rad.to_degrees(),
                         l.runner_up_rad.to_degrees(),
@@ -137,24 +145,10 @@ impl LiveTarget {
                     sharpness,
                 );
             };
-            pose.camera_from_target = symmetry.relabel_pose(&pose.camera_from_target, k);
-            detection.target_points = symmetry.relabel_points(&detection.target_points, k);
+            o.camera_from_target = symmetry.relabel_pose(&o.camera_from_target, k);
+            o.board.target_points = symmetry.relabel_points(&o.board.target_points, k);
         }
-        (
-            Ok(Observation {
-                row,
-                image: Some(name.clone()),
-                camera_from_target: pose.camera_from_target,
-                board: b2b_calib::refine::BoardCapture {
-                    base_from_flange,
-                    target_points: detection.target_points,
-                    pixels: detection.pixels,
-                },
-                pnp_rms_px: pose.rms_px,
-                residuals_px: pose.residuals_px,
-            }),
-            sharpness,
-        )
+        (Ok(o), sharpness)
     }
 }
 

@@ -79,10 +79,24 @@ pub fn print_sigma(covariance: &b2b_protocol::Covariance6) {
     );
 }
 
+/// A transform as two lines: `NAME t = [...] m`, then its quaternion (x, y, z, w)
+/// aligned under it.
+fn print_pose(name: &str, pose: &b2b_protocol::Pose) {
+    let (t, q) = (pose.t, pose.q);
+    println!("{name} t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
+    println!(
+        "{:w$}q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
+        "",
+        q[0],
+        q[1],
+        q[2],
+        q[3],
+        w = name.len() + 1
+    );
+}
+
 /// The summary both `coordinator calibrate` and `coordinator run` print.
 pub fn print_result(r: &CalibrationResult) {
-    let t = r.base1_from_base2.t;
-    let q = r.base1_from_base2.q;
     println!("method {}", r.method);
     for (robot, n) in &r.captures.used {
         println!("  {robot}: {n} captures used");
@@ -95,14 +109,7 @@ pub fn print_result(r: &CalibrationResult) {
             rej.reason
         );
     }
-    println!(
-        "T_base1_base2 t = [{:.6}, {:.6}, {:.6}] m",
-        t[0], t[1], t[2]
-    );
-    println!(
-        "              q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
-        q[0], q[1], q[2], q[3]
-    );
+    print_pose("T_base1_base2", &r.base1_from_base2);
     print_sigma(&r.covariance);
     println!(
         "predicted touch error: mean {:.3} mm, p95 {:.3} mm",
@@ -119,8 +126,6 @@ pub fn print_result(r: &CalibrationResult) {
 /// timings, and the camera when its intrinsics were estimated or refined.
 pub fn print_hand_eye(run: &b2b_pipeline::HandEyeRun, obs: &b2b_pipeline::RobotObservations) {
     let r = &run.result;
-    let t = r.flange_from_camera.t;
-    let q = r.flange_from_camera.q;
     println!("robot {}: method {}", r.robot, r.method);
     println!(
         "captures: {} used, {} rejected",
@@ -134,14 +139,7 @@ pub fn print_hand_eye(run: &b2b_pipeline::HandEyeRun, obs: &b2b_pipeline::RobotO
             rej.reason
         );
     }
-    println!(
-        "T_flange_camera t = [{:.6}, {:.6}, {:.6}] m",
-        t[0], t[1], t[2]
-    );
-    println!(
-        "                q = [{:.8}, {:.8}, {:.8}, {:.8}] (x, y, z, w)",
-        q[0], q[1], q[2], q[3]
-    );
+    print_pose("T_flange_camera", &r.flange_from_camera);
     print_sigma(&r.covariance);
     println!(
         "reprojection RMS {:.3} px; detect {:.0} ms, solve {:.0} ms",

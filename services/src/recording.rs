@@ -74,16 +74,7 @@ pub fn log_hand_eye_run(
         return Ok(());
     }
     let x = result.flange_from_camera.to_isometry("T_flange_camera")?;
-    let c = &obs.camera;
-    let intr = b2b_protocol::messages::Intrinsics {
-        width: c.width,
-        height: c.height,
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        dist: c.dist[..5].to_vec(),
-    };
+    let intr = crate::agent::intrinsics(&obs.camera);
     let base = b2b_viz::Base::One;
     let logged = rec.log_hand_eye(base, &x, &intr).and_then(|()| {
         obs.observations.iter().enumerate().try_for_each(|(i, o)| {

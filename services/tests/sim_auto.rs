@@ -206,7 +206,11 @@ fn live_within_offline(name: &str, method: &str, count: usize, min_used: usize) 
         coordinator_args: &[],
         board_off: None,
         count,
-        min_good: min_used + 1,
+        // Two good captures more than the result must use: the estimator may
+        // rightly leave one or two out (a frame taken while the arm still moved
+        // on a loaded machine: one run of the three-face corner with one to spare
+        // kept fewer than 15).
+        min_good: min_used + 2,
         method,
     });
     for robot in ["robot1", "robot2"] {
