@@ -48,7 +48,8 @@ enum Command {
         /// Robot ids in order (robot 1 first); default: sorted ids.
         #[arg(long, value_delimiter = ',')]
         robots: Option<Vec<String>>,
-        /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
+        /// Where to write RESULT.json (beside it: RESULT.ros.yaml, RESULT.opencv.yml, a
+        /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
         #[arg(long)]
         out: PathBuf,
         /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
@@ -82,7 +83,8 @@ enum Command {
         /// and refined so.
         #[arg(long)]
         refine_intrinsics: bool,
-        /// Where to write RESULT.json (and RESULT.ros.yaml, RESULT.opencv.yml).
+        /// Where to write RESULT.json (beside it: RESULT.ros.yaml, RESULT.opencv.yml, a
+        /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
