@@ -115,6 +115,19 @@ pub enum DatasetError {
         source: serde_json::Error,
     },
 
+    /// A YAML file (another tool's saved samples) that is not valid YAML, or does
+    /// not have the expected shape; the message says where.
+    #[error("{}: not the expected YAML", file.display())]
+    Yaml {
+        file: PathBuf,
+        #[source]
+        source: serde_yaml::Error,
+    },
+
+    /// Another tool's file that says something this project cannot import.
+    #[error("{at}: {reason}")]
+    Unsupported { at: Location, reason: String },
+
     /// `dataset.json` declares a format other than `b2b-dataset/1`.
     #[error("{at}: format is `{found}`, expected `{expected}`", expected = crate::FORMAT)]
     WrongFormat { at: Location, found: String },
@@ -244,7 +257,11 @@ impl DatasetError {
     pub fn location(&self) -> Option<&Location> {
         use DatasetError::*;
         match self {
-            MissingFile { .. } | Io { .. } | Json { .. } | TouchPointsNeedTwoRobots { .. } => None,
+            MissingFile { .. }
+            | Io { .. }
+            | Json { .. }
+            | Yaml { .. }
+            | TouchPointsNeedTwoRobots { .. } => None,
             WrongFormat { at, .. }
             | UnknownTargetKind { at, .. }
             | InvalidTarget { at, .. }
@@ -268,7 +285,8 @@ impl DatasetError {
             | PartialCameraPose { at }
             | DepthWithoutUnit { at, .. }
             | BadPath { at, .. }
-            | UnknownRobot { at, .. } => Some(at),
+            | UnknownRobot { at, .. }
+            | Unsupported { at, .. } => Some(at),
         }
     }
 

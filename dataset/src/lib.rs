@@ -27,6 +27,7 @@
 
 mod captures;
 mod error;
+pub mod import;
 mod manifest;
 pub mod pose;
 mod table;

@@ -370,3 +370,164 @@ fn verify_reports_iso_9283_for_repeated_locations() {
         );
     }
 }
+
+/// One easy_handeye2 sample: `robot` and `tracking` as tf gives them.
+fn easy_handeye_sample(
+    base_from_flange: &nalgebra::Isometry3<f64>,
+    camera_from_target: &nalgebra::Isometry3<f64>,
+) -> String {
+    let block = |name: &str, p: &nalgebra::Isometry3<f64>| {
+        let (t, q) = (p.translation.vector, p.rotation.coords);
+        format!(
+            "  {name}:\n    translation:\n      x: {:?}\n      y: {:?}\n      z: {:?}\n    \
+             rotation:\n      x: {:?}\n      y: {:?}\n      z: {:?}\n      w: {:?}\n",
+            t.x, t.y, t.z, q.x, q.y, q.z, q.w
+        )
+    };
+    let robot = block("robot", base_from_flange);
+    format!(
+        "- {}{}",
+        robot.trim_start(),
+        block("tracking", camera_from_target)
+    )
+}
+
+#[test]
+fn easy_handeye_samples_are_imported_and_calibrated() {
+    use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+    let tmp = tempfile::tempdir().unwrap();
+    // The truth: a camera on the flange, a board on the table.
+    let flange_from_camera = Isometry3::from_parts(
+        Translation3::new(0.03, -0.02, 0.08),
+        UnitQuaternion::from_euler_angles(0.05, -0.1, 1.5),
+    );
+    let base_from_target = Isometry3::from_parts(
+        Translation3::new(0.6, -0.1, 0.0),
+        UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.3),
+    );
+    let centre = base_from_target * Point3::new(0.1, 0.0625, 0.0);
+    let mut samples = String::from(
+        "parameters:\n  name: cell\n  calibration_type: eye_in_hand\n  robot_base_frame: base\n\
+         samples:\n",
+    );
+    for k in 0..12 {
+        let a = k as f64 * std::f64::consts::TAU / 12.0;
+        let eye =
+            centre + Vector3::new(0.25 * a.cos(), 0.25 * a.sin(), 0.45 + 0.03 * (k % 3) as f64);
+        let base_from_camera =
+            b2b_calib::pose::look_at(&eye, &centre, &Vector3::z(), 0.2 * (k % 4) as f64 - 0.3);
+        let base_from_flange = base_from_camera * flange_from_camera.inverse();
+        let camera_from_target = base_from_camera.inverse() * base_from_target;
+        samples += &easy_handeye_sample(&base_from_flange, &camera_from_target);
+    }
+    let file = tmp.path().join("cell.samples");
+    std::fs::write(&file, samples).unwrap();
+    let target = tmp.path().join("target.json");
+    std::fs::write(
+        &target,
+        r#"{"kind": "checkerboard", "inner_corners": [9, 6], "square_m": 0.025}"#,
+    )
+    .unwrap();
+    let camera = tmp.path().join("camera.json");
+    std::fs::write(
+        &camera,
+        r#"{"width": 640, "height": 480, "fx": 600.0, "fy": 600.0, "cx": 320.0, "cy": 240.0, "dist": [0, 0, 0, 0, 0]}"#,
+    )
+    .unwrap();
+    let dataset = tmp.path().join("imported");
+    let import = |robot: &str| {
+        coordinator()
+            .args(["import", "--easy-handeye"])
+            .arg(&file)
+            .args(["--robot", robot, "--target"])
+            .arg(&target)
+            .arg("--camera")
+            .arg(&camera)
+            .arg("--out")
+            .arg(&dataset)
+            .output()
+            .unwrap()
+    };
+    let out = import("robot1");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("robot1: 12 samples imported"));
+    // A second robot joins the same dataset; the first one is never replaced.
+    assert!(import("robot2").status.success());
+    fails_cleanly(
+        coordinator()
+            .args(["import", "--easy-handeye"])
+            .arg(&file)
+            .args(["--robot", "robot1", "--target"])
+            .arg(&target)
+            .arg("--camera")
+            .arg(&camera)
+            .arg("--out")
+            .arg(&dataset),
+        "robot `robot1` is already in the dataset",
+    );
+    // The imported rows calibrate to the truth: the directions of both transforms
+    // are the ones tf gave.
+    let he = tmp.path().join("HANDEYE.json");
+    let out = agent()
+        .args(["handeye", "--dataset"])
+        .arg(&dataset)
+        .args(["--robot", "robot2", "--out"])
+        .arg(&he)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let result: b2b_protocol::HandEyeResult =
+        serde_json::from_str(&std::fs::read_to_string(&he).unwrap()).unwrap();
+    let x = result.flange_from_camera.to_isometry("x").unwrap();
+    let d = flange_from_camera.inverse() * x;
+    assert!(d.translation.vector.norm() < 1e-5, "{d}");
+    assert!(d.rotation.angle() < 1e-5, "{d}");
+
+    // An eye-on-base file is refused by name; so is a rotation that is not one.
+    let eob = tmp.path().join("eob.samples");
+    std::fs::write(
+        &eob,
+        std::fs::read_to_string(&file)
+            .unwrap()
+            .replace("eye_in_hand", "eye_on_base"),
+    )
+    .unwrap();
+    fails_cleanly(
+        coordinator()
+            .args(["import", "--easy-handeye"])
+            .arg(&eob)
+            .args(["--robot", "robot3", "--target"])
+            .arg(&target)
+            .arg("--camera")
+            .arg(&camera)
+            .arg("--out")
+            .arg(&dataset),
+        "`eye_on_base`: only eye-in-hand samples",
+    );
+    let text = std::fs::read_to_string(&file).unwrap();
+    let at = text.find("    rotation:\n      x: ").unwrap() + "    rotation:\n      x: ".len();
+    let rest = text[at..].split_once('\n').unwrap().1;
+    let bad = format!("{}7.0\n{rest}", &text[..at]);
+    let bad_file = tmp.path().join("bad.samples");
+    std::fs::write(&bad_file, bad).unwrap();
+    fails_cleanly(
+        coordinator()
+            .args(["import", "--easy-handeye"])
+            .arg(&bad_file)
+            .args(["--robot", "robot3", "--target"])
+            .arg(&target)
+            .arg("--camera")
+            .arg(&camera)
+            .arg("--out")
+            .arg(&dataset),
+        "samples[0].robot",
+    );
+}

@@ -110,6 +110,28 @@ enum Command {
         #[command(flatten)]
         rerun: RerunArgs,
     },
+    /// Imports another tool's saved hand-eye samples as one robot's pose-only
+    /// captures of a b2b-dataset/1 folder (created, or the robot added to it):
+    /// easy_handeye2's NAME.samples (eye-in-hand; `robot` is T_base_flange,
+    /// `tracking` T_camera_target).
+    Import {
+        /// An easy_handeye2 samples file (YAML).
+        #[arg(long = "easy-handeye")]
+        easy_handeye: PathBuf,
+        /// The robot id the samples are of (its folder in the dataset).
+        #[arg(long)]
+        robot: String,
+        /// The target, as JSON exactly like dataset.json's `target`.
+        #[arg(long)]
+        target: PathBuf,
+        /// The camera's intrinsics, as JSON exactly like a robot's `camera` in
+        /// dataset.json.
+        #[arg(long)]
+        camera: PathBuf,
+        /// The dataset folder.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// An HTML report of a result (and its verification): plots of residuals,
     /// error distributions, touch errors against the predicted bound, view
     /// coverage, rejected captures, and the numbers.
@@ -250,6 +272,32 @@ fn main() -> std::process::ExitCode {
             }
             log_verification(&recorder, &r, &touches, &m)?;
             finish_recording(recorder);
+            Ok(())
+        }
+        Command::Import {
+            easy_handeye,
+            robot,
+            target,
+            camera,
+            out,
+        } => {
+            b2b_protocol::messages::validate_robot_id(&robot)?;
+            let captures = b2b_dataset::import::read_easy_handeye_samples(&easy_handeye)?;
+            let n = captures.len();
+            let ds = b2b_dataset::import::add_robot(
+                &out,
+                &robot,
+                read_json(&target)?,
+                read_json(&camera)?,
+                captures,
+                &format!("easy_handeye2 samples {}", easy_handeye.display()),
+            )?;
+            let ids: Vec<&str> = ds.manifest.robots.iter().map(|r| r.id.as_str()).collect();
+            println!(
+                "{robot}: {n} samples imported as pose-only captures; {} now has robots {}",
+                out.display(),
+                ids.join(", ")
+            );
             Ok(())
         }
         Command::Report {

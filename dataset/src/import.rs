@@ -1,0 +1,208 @@
+//! Pose samples other calibration tools save, as `b2b-dataset/1` pose-only rows
+//! (`T_base_flange` with `T_camera_target`, no image), so their users can run
+//! our estimator on data they already have.
+//!
+//! **easy_handeye2** (ROS 2) saves a calibration's samples as YAML, `NAME.samples`:
+//!
+//! ```yaml
+//! parameters:
+//!   calibration_type: eye_in_hand     # or eye_on_base; may be empty
+//!   robot_base_frame: ...             # the other frame names are kept as text
+//! samples:
+//! - robot:    {translation: {x, y, z}, rotation: {x, y, z, w}}
+//!   tracking: {translation: {x, y, z}, rotation: {x, y, z, w}}
+//! ```
+//!
+//! Each sample is two tf lookups (`lookup_transform(target, source)`, the pose of
+//! `source` in `target`): for an eye-in-hand calibration, `robot` is the effector in
+//! the robot base, `T_base_flange` (with the effector frame as the flange), and
+//! `tracking` the marker in the camera (tracking base) frame, `T_camera_target`.
+//! An eye-on-base file has the robot transform inverted and a camera that does not
+//! ride on the arm: it is refused, as this project calibrates flange cameras. An
+//! empty `calibration_type` is taken as eye-in-hand.
+
+use std::path::Path;
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use serde::Deserialize;
+
+use crate::{Capture, DatasetError, Location};
+
+#[derive(Debug, Deserialize)]
+struct SamplesFile {
+    #[serde(default)]
+    parameters: Option<Parameters>,
+    samples: Vec<Sample>,
+}
+
+#[derive(Debug, Deserialize)]
+struct Parameters {
+    #[serde(default)]
+    calibration_type: Option<String>,
+}
+
+#[derive(Debug, Deserialize)]
+struct Sample {
+    robot: Transform,
+    tracking: Transform,
+}
+
+#[derive(Debug, Deserialize)]
+struct Transform {
+    translation: Xyz,
+    rotation: Xyzw,
+}
+
+#[derive(Debug, Deserialize)]
+struct Xyz {
+    x: f64,
+    y: f64,
+    z: f64,
+}
+
+#[derive(Debug, Deserialize)]
+struct Xyzw {
+    x: f64,
+    y: f64,
+    z: f64,
+    w: f64,
+}
+
+impl Transform {
+    /// The transform, or what is wrong with it (`field` names it in the error).
+    fn isometry(&self, file: &Path, field: &str) -> Result<Isometry3<f64>, DatasetError> {
+        let at = || Location::field(file, field);
+        let t = &self.translation;
+        let r = &self.rotation;
+        for value in [t.x, t.y, t.z, r.x, r.y, r.z, r.w] {
+            if !value.is_finite() {
+                return Err(DatasetError::NonFinite { at: at(), value });
+            }
+        }
+        for value in [t.x, t.y, t.z] {
+            if value.abs() > crate::MAX_COORDINATE_M {
+                return Err(DatasetError::LooksLikeMillimetres { at: at(), value });
+            }
+        }
+        let q = Quaternion::new(r.w, r.x, r.y, r.z);
+        let norm = q.norm();
+        if (norm - 1.0).abs() > b2b_protocol::QUATERNION_NORM_TOLERANCE {
+            return Err(DatasetError::NotUnitQuaternion { at: at(), norm });
+        }
+        Ok(Isometry3::from_parts(
+            Translation3::new(t.x, t.y, t.z),
+            UnitQuaternion::from_quaternion(q),
+        ))
+    }
+}
+
+/// Reads an easy_handeye2 `.samples` file as pose-only captures, in the file's
+/// order (rows numbered from 1).
+pub fn read_easy_handeye_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
+    let text = std::fs::read_to_string(file).map_err(|source| DatasetError::Io {
+        file: file.to_owned(),
+        source,
+    })?;
+    let parsed: SamplesFile = serde_yaml::from_str(&text).map_err(|source| DatasetError::Yaml {
+        file: file.to_owned(),
+        source,
+    })?;
+    let kind = parsed
+        .parameters
+        .and_then(|p| p.calibration_type)
+        .unwrap_or_default();
+    match kind.as_str() {
+        "" | "eye_in_hand" => {}
+        other => {
+            return Err(DatasetError::Unsupported {
+                at: Location::field(file, "parameters.calibration_type"),
+                reason: format!(
+                    "`{other}`: only eye-in-hand samples (a camera on the flange) can be imported"
+                ),
+            });
+        }
+    }
+    if parsed.samples.is_empty() {
+        return Err(DatasetError::Unsupported {
+            at: Location::field(file, "samples"),
+            reason: "no samples".into(),
+        });
+    }
+    parsed
+        .samples
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            Ok(Capture {
+                row: i + 1,
+                image: None,
+                depth: None,
+                base_from_flange: s.robot.isometry(file, &format!("samples[{i}].robot"))?,
+                camera_from_target: Some(
+                    s.tracking
+                        .isometry(file, &format!("samples[{i}].tracking"))?,
+                ),
+            })
+        })
+        .collect()
+}
+
+/// Adds `robot`'s imported `captures` (with its `camera`) to the dataset in `dir`,
+/// or creates it there with `target`, and writes it. An existing dataset must
+/// have the same target and not list `robot` yet: nothing is replaced.
+/// `source` says where the captures came from (kept in the manifest's `source`).
+pub fn add_robot(
+    dir: &Path,
+    robot: &str,
+    target: crate::Target,
+    camera: crate::CameraIntrinsics,
+    captures: Vec<Capture>,
+    source: &str,
+) -> Result<crate::Dataset, DatasetError> {
+    let manifest_file = dir.join(crate::MANIFEST_FILE);
+    let mut dataset = if manifest_file.exists() {
+        let ds = crate::Dataset::load(dir)?;
+        if ds.manifest.target != target {
+            return Err(DatasetError::Unsupported {
+                at: Location::field(&manifest_file, "target"),
+                reason: format!(
+                    "the dataset's target is {:?}, the import's {:?}: one dataset has one target",
+                    ds.manifest.target, target
+                ),
+            });
+        }
+        if ds.manifest.robot(robot).is_some() {
+            return Err(DatasetError::Unsupported {
+                at: Location::field(&manifest_file, "robots"),
+                reason: format!("robot `{robot}` is already in the dataset; nothing was replaced"),
+            });
+        }
+        ds
+    } else {
+        let name = dir.file_name().map_or_else(
+            || "imported".to_owned(),
+            |n| n.to_string_lossy().into_owned(),
+        );
+        crate::Dataset {
+            root: dir.to_owned(),
+            manifest: crate::Manifest::new(name, target, vec![]),
+            robots: vec![],
+            touch_points: None,
+        }
+    };
+    let mut entry = crate::RobotManifest::new(robot);
+    entry.camera = Some(camera);
+    dataset.manifest.robots.push(entry);
+    dataset.robots.push(crate::RobotData {
+        id: robot.to_owned(),
+        captures,
+    });
+    let line = format!("{robot}: imported from {source}");
+    dataset.manifest.source = if dataset.manifest.source.is_empty() {
+        line
+    } else {
+        format!("{}; {line}", dataset.manifest.source)
+    };
+    dataset.write(dir)?;
+    crate::Dataset::load(dir)
+}
