@@ -20,6 +20,18 @@
 //! An eye-on-base file has the robot transform inverted and a camera that does not
 //! ride on the arm: it is refused, as this project calibrates flange cameras. An
 //! empty `calibration_type` is taken as eye-in-hand.
+//!
+//! **MoveIt Calibration** ("Save samples" in its RViz plugin) saves a YAML list:
+//!
+//! ```yaml
+//! - effector_wrt_world: [16 numbers]   # 4x4, row-major
+//!   object_wrt_sensor: [16 numbers]
+//! ```
+//!
+//! `effector_wrt_world` is `lookupTransform(base, eef)`, the effector in the robot
+//! base: `T_base_flange`; `object_wrt_sensor` is `lookupTransform(sensor, object)`,
+//! the target in the camera: `T_camera_target`. The file does not say how the
+//! camera was mounted; it is taken as eye-in-hand.
 
 use std::path::Path;
 
@@ -94,6 +106,112 @@ impl Transform {
             UnitQuaternion::from_quaternion(q),
         ))
     }
+}
+
+#[derive(Debug, Deserialize)]
+struct MoveItSample {
+    effector_wrt_world: Vec<f64>,
+    object_wrt_sensor: Vec<f64>,
+}
+
+/// Largest deviation from a rotation (`|RᵀR - I|`, `|det R - 1|`) a 4x4 matrix
+/// of another tool may carry (its numbers are printed to about 6 digits).
+const ROTATION_TOLERANCE: f64 = 1e-4;
+
+/// A row-major 4x4 homogeneous transform, or what is wrong with it.
+fn matrix_isometry(
+    values: &[f64],
+    file: &Path,
+    field: &str,
+) -> Result<Isometry3<f64>, DatasetError> {
+    let at = || Location::field(file, field);
+    if values.len() != 16 {
+        return Err(DatasetError::Unsupported {
+            at: at(),
+            reason: format!("{} numbers, a 4x4 matrix has 16", values.len()),
+        });
+    }
+    if let Some(&value) = values.iter().find(|v| !v.is_finite()) {
+        return Err(DatasetError::NonFinite { at: at(), value });
+    }
+    let m = nalgebra::Matrix4::from_row_slice(values);
+    if (m.row(3) - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0))
+        .abs()
+        .max()
+        > ROTATION_TOLERANCE
+    {
+        return Err(DatasetError::Unsupported {
+            at: at(),
+            reason: format!(
+                "last row {:?} is not 0 0 0 1",
+                m.row(3).iter().collect::<Vec<_>>()
+            ),
+        });
+    }
+    let r: nalgebra::Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into();
+    let off = (r.transpose() * r - nalgebra::Matrix3::identity())
+        .abs()
+        .max();
+    let det = r.determinant();
+    if off > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
+        return Err(DatasetError::Unsupported {
+            at: at(),
+            reason: format!(
+                "the upper-left 3x3 is not a rotation (|RᵀR - I| = {off:.2e}, det = {det:.6})"
+            ),
+        });
+    }
+    let t = m.fixed_view::<3, 1>(0, 3);
+    for &value in t.iter() {
+        if value.abs() > crate::MAX_COORDINATE_M {
+            return Err(DatasetError::LooksLikeMillimetres { at: at(), value });
+        }
+    }
+    Ok(Isometry3::from_parts(
+        Translation3::new(t[0], t[1], t[2]),
+        UnitQuaternion::from_matrix(&r),
+    ))
+}
+
+/// Reads a MoveIt Calibration samples file as pose-only captures, in the file's
+/// order (rows numbered from 1).
+pub fn read_moveit_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
+    let text = std::fs::read_to_string(file).map_err(|source| DatasetError::Io {
+        file: file.to_owned(),
+        source,
+    })?;
+    let samples: Vec<MoveItSample> =
+        serde_yaml::from_str(&text).map_err(|source| DatasetError::Yaml {
+            file: file.to_owned(),
+            source,
+        })?;
+    if samples.is_empty() {
+        return Err(DatasetError::Unsupported {
+            at: Location::file(file),
+            reason: "no samples".into(),
+        });
+    }
+    samples
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            Ok(Capture {
+                row: i + 1,
+                image: None,
+                depth: None,
+                base_from_flange: matrix_isometry(
+                    &s.effector_wrt_world,
+                    file,
+                    &format!("[{i}].effector_wrt_world"),
+                )?,
+                camera_from_target: Some(matrix_isometry(
+                    &s.object_wrt_sensor,
+                    file,
+                    &format!("[{i}].object_wrt_sensor"),
+                )?),
+            })
+        })
+        .collect()
 }
 
 /// Reads an easy_handeye2 `.samples` file as pose-only captures, in the file's

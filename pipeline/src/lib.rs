@@ -1431,7 +1431,7 @@ fn hand_eye_with(
                     };
                     CaptureResidual {
                         image: o.image.clone().unwrap_or_else(|| format!("row {}", o.row)),
-                        rms_px,
+                        rms_px: rms_px.is_finite().then_some(rms_px),
                         outlier_corners,
                     }
                 })

@@ -221,7 +221,9 @@ impl CalibrationResult {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaptureResidual {
     pub image: String,
-    pub rms_px: f64,
+    /// RMS of the capture's inlier corners; `null` when it has none to measure
+    /// (left out before the fit as a gross row, or every corner an outlier).
+    pub rms_px: Option<f64>,
     /// Corners that the robust stage rejected as outliers.
     pub outlier_corners: usize,
 }

@@ -210,14 +210,14 @@ impl ReportInputs {
                 .find(|d| d.robot == robot && d.label.as_deref() == Some(c.image.as_str()));
             match existing {
                 Some(d) => {
-                    d.rms_px = Some(c.rms_px);
+                    d.rms_px = c.rms_px;
                     d.outlier_corners = Some(c.outlier_corners);
                 }
                 None => self.captures.push(CaptureDetail {
                     robot: robot.clone(),
                     index: i as u64,
                     label: Some(c.image.clone()),
-                    rms_px: Some(c.rms_px),
+                    rms_px: c.rms_px,
                     outlier_corners: Some(c.outlier_corners),
                     view_direction: None,
                     rejected: None,
@@ -241,10 +241,12 @@ impl ReportInputs {
     pub fn add_hand_eye_file(&mut self, path: &Path) -> Result<(), ReportError> {
         let he: HandEyeResult = read_json(path, "HANDEYE.json (b2b-handeye/1)")?;
         for (i, c) in he.per_capture.iter().enumerate() {
-            if !c.rms_px.is_finite() || c.rms_px < 0.0 {
+            if let Some(r) = c.rms_px
+                && !(r.is_finite() && r >= 0.0)
+            {
                 return Err(bad(
                     format!("{}: per_capture[{i}].rms_px", path.display()),
-                    format!("{} is not a non-negative number", c.rms_px),
+                    format!("{r} is not a non-negative number"),
                 ));
             }
         }

@@ -106,7 +106,7 @@ fn richer_inputs_add_plots_and_the_output_is_deterministic() {
         per_capture: (0..5)
             .map(|i| CaptureResidual {
                 image: format!("images/{i:03}.png"),
-                rms_px: 0.1 + 0.01 * i as f64,
+                rms_px: Some(0.1 + 0.01 * i as f64),
                 outlier_corners: i,
             })
             .collect(),

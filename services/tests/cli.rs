@@ -392,6 +392,39 @@ fn easy_handeye_sample(
     )
 }
 
+/// A small rigid motion, uniform in each axis within `t` (m) and `r` (rad), from
+/// a xorshift state.
+fn jitter(state: &mut u64, t: f64, r: f64) -> nalgebra::Isometry3<f64> {
+    let mut next = || {
+        *state ^= *state << 13;
+        *state ^= *state >> 7;
+        *state ^= *state << 17;
+        (*state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    let v = nalgebra::Vector3::new(next() * t, next() * t, next() * t);
+    let w = nalgebra::Vector3::new(next() * r, next() * r, next() * r);
+    nalgebra::Isometry3::from_parts(v.into(), nalgebra::UnitQuaternion::from_scaled_axis(w))
+}
+
+/// One MoveIt Calibration sample: two 4x4 matrices, row-major.
+fn moveit_sample(
+    base_from_flange: &nalgebra::Isometry3<f64>,
+    camera_from_target: &nalgebra::Isometry3<f64>,
+) -> String {
+    let rows = |p: &nalgebra::Isometry3<f64>| {
+        let m = p.to_homogeneous();
+        (0..4)
+            .flat_map(|i| (0..4).map(move |j| format!("{:?}", m[(i, j)])))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    format!(
+        "- effector_wrt_world: [{}]\n  object_wrt_sensor: [{}]\n",
+        rows(base_from_flange),
+        rows(camera_from_target)
+    )
+}
+
 #[test]
 fn easy_handeye_samples_are_imported_and_calibrated() {
     use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
@@ -410,15 +443,22 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
         "parameters:\n  name: cell\n  calibration_type: eye_in_hand\n  robot_base_frame: base\n\
          samples:\n",
     );
+    let mut moveit = String::new();
+    let mut rng = 0x2545_f491_4f6c_dd1d_u64;
     for k in 0..12 {
         let a = k as f64 * std::f64::consts::TAU / 12.0;
         let eye =
             centre + Vector3::new(0.25 * a.cos(), 0.25 * a.sin(), 0.45 + 0.03 * (k % 3) as f64);
         let base_from_camera =
             b2b_calib::pose::look_at(&eye, &centre, &Vector3::z(), 0.2 * (k % 4) as f64 - 0.3);
-        let base_from_flange = base_from_camera * flange_from_camera.inverse();
-        let camera_from_target = base_from_camera.inverse() * base_from_target;
+        // What the arm and the tracker report: each off by a little, as real
+        // samples are (about 0.05 mm / 0.01° and 0.1 mm / 0.02°).
+        let base_from_flange =
+            base_from_camera * flange_from_camera.inverse() * jitter(&mut rng, 5e-5, 1.7e-4);
+        let camera_from_target =
+            base_from_camera.inverse() * base_from_target * jitter(&mut rng, 1e-4, 3.5e-4);
         samples += &easy_handeye_sample(&base_from_flange, &camera_from_target);
+        moveit += &moveit_sample(&base_from_flange, &camera_from_target);
     }
     let file = tmp.path().join("cell.samples");
     std::fs::write(&file, samples).unwrap();
@@ -469,14 +509,18 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
             .arg(&dataset),
         "robot `robot1` is already in the dataset",
     );
-    // The imported rows calibrate to the truth: the directions of both transforms
-    // are the ones tf gave.
-    let he = tmp.path().join("HANDEYE.json");
-    let out = agent()
-        .args(["handeye", "--dataset"])
+    // The same samples as MoveIt Calibration saves them, for a third arm.
+    let moveit_file = tmp.path().join("moveit.yaml");
+    std::fs::write(&moveit_file, &moveit).unwrap();
+    let out = coordinator()
+        .args(["import", "--moveit"])
+        .arg(&moveit_file)
+        .args(["--robot", "robot3", "--target"])
+        .arg(&target)
+        .arg("--camera")
+        .arg(&camera)
+        .arg("--out")
         .arg(&dataset)
-        .args(["--robot", "robot2", "--out"])
-        .arg(&he)
         .output()
         .unwrap();
     assert!(
@@ -484,12 +528,59 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let result: b2b_protocol::HandEyeResult =
-        serde_json::from_str(&std::fs::read_to_string(&he).unwrap()).unwrap();
-    let x = result.flange_from_camera.to_isometry("x").unwrap();
-    let d = flange_from_camera.inverse() * x;
-    assert!(d.translation.vector.norm() < 1e-5, "{d}");
-    assert!(d.rotation.angle() < 1e-5, "{d}");
+    // The imported rows calibrate to the truth: the directions of both transforms
+    // are the ones tf gave, in both formats.
+    for robot in ["robot2", "robot3"] {
+        let he = tmp.path().join(format!("HANDEYE-{robot}.json"));
+        let out = agent()
+            .args(["handeye", "--dataset"])
+            .arg(&dataset)
+            .args(["--robot", robot, "--out"])
+            .arg(&he)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let text = std::fs::read_to_string(&he).unwrap();
+        let result: b2b_protocol::HandEyeResult =
+            serde_json::from_str(&text).unwrap_or_else(|e| panic!("{robot}: {e}: {text}"));
+        let x = result.flange_from_camera.to_isometry("x").unwrap();
+        let d = flange_from_camera.inverse() * x;
+        eprintln!(
+            "{robot}: imported hand-eye {:.3} mm, {:.4} deg from the truth",
+            d.translation.vector.norm() * 1e3,
+            d.rotation.angle().to_degrees()
+        );
+        // A direction taken the wrong way round misses by centimetres and tens
+        // of degrees; the noise above leaves 0.25 mm / 0.008° (the README's
+        // figures, asserted within 1.5x).
+        assert!(d.translation.vector.norm() < 0.375e-3, "{robot}: {d}");
+        assert!(d.rotation.angle() < 0.012f64.to_radians(), "{robot}: {d}");
+    }
+    // A matrix that is not a rigid transform is refused by name.
+    let sheared = moveit.replacen(
+        "effector_wrt_world: [",
+        "effector_wrt_world: [1.5, 0, 0, 0, ",
+        1,
+    );
+    let sheared = sheared.replacen(", 0.0, 0.0, 0.0, 1.0]", "]", 0);
+    let bad_moveit = tmp.path().join("bad-moveit.yaml");
+    std::fs::write(&bad_moveit, sheared).unwrap();
+    fails_cleanly(
+        coordinator()
+            .args(["import", "--moveit"])
+            .arg(&bad_moveit)
+            .args(["--robot", "robot4", "--target"])
+            .arg(&target)
+            .arg("--camera")
+            .arg(&camera)
+            .arg("--out")
+            .arg(&dataset),
+        "[0].effector_wrt_world",
+    );
 
     // An eye-on-base file is refused by name; so is a rotation that is not one.
     let eob = tmp.path().join("eob.samples");

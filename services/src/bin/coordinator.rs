@@ -113,11 +113,19 @@ enum Command {
     /// Imports another tool's saved hand-eye samples as one robot's pose-only
     /// captures of a b2b-dataset/1 folder (created, or the robot added to it):
     /// easy_handeye2's NAME.samples (eye-in-hand; `robot` is T_base_flange,
-    /// `tracking` T_camera_target).
+    /// `tracking` T_camera_target) or MoveIt Calibration's saved samples
+    /// (`effector_wrt_world` T_base_flange, `object_wrt_sensor` T_camera_target).
     Import {
         /// An easy_handeye2 samples file (YAML).
-        #[arg(long = "easy-handeye")]
-        easy_handeye: PathBuf,
+        #[arg(
+            long = "easy-handeye",
+            required_unless_present = "moveit",
+            conflicts_with = "moveit"
+        )]
+        easy_handeye: Option<PathBuf>,
+        /// A MoveIt Calibration samples file (YAML, "Save samples").
+        #[arg(long)]
+        moveit: Option<PathBuf>,
         /// The robot id the samples are of (its folder in the dataset).
         #[arg(long)]
         robot: String,
@@ -276,13 +284,24 @@ fn main() -> std::process::ExitCode {
         }
         Command::Import {
             easy_handeye,
+            moveit,
             robot,
             target,
             camera,
             out,
         } => {
             b2b_protocol::messages::validate_robot_id(&robot)?;
-            let captures = b2b_dataset::import::read_easy_handeye_samples(&easy_handeye)?;
+            let (captures, source) = match (easy_handeye, moveit) {
+                (Some(f), _) => (
+                    b2b_dataset::import::read_easy_handeye_samples(&f)?,
+                    format!("easy_handeye2 samples {}", f.display()),
+                ),
+                (None, Some(f)) => (
+                    b2b_dataset::import::read_moveit_samples(&f)?,
+                    format!("MoveIt Calibration samples {}", f.display()),
+                ),
+                (None, None) => anyhow::bail!("give --easy-handeye FILE or --moveit FILE"),
+            };
             let n = captures.len();
             let ds = b2b_dataset::import::add_robot(
                 &out,
@@ -290,7 +309,7 @@ fn main() -> std::process::ExitCode {
                 read_json(&target)?,
                 read_json(&camera)?,
                 captures,
-                &format!("easy_handeye2 samples {}", easy_handeye.display()),
+                &source,
             )?;
             let ids: Vec<&str> = ds.manifest.robots.iter().map(|r| r.id.as_str()).collect();
             println!(
