@@ -49,6 +49,7 @@
 //!   so [`observe_capture`] keeps refusing symmetric boards (the vision crate's
 //!   [`VisionError::AmbiguousOrientation`]).
 
+pub mod progress;
 pub mod rgbd;
 
 use std::path::{Path, PathBuf};
@@ -787,6 +788,10 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
     check_image_sizes(ds, robot, &setup.camera)?;
     let mut observations = Vec::new();
     let mut rejected = Vec::new();
+    let stage = progress::Stage::new(
+        &format!("{robot}: detecting the target"),
+        data.captures.len(),
+    );
     for cap in &data.captures {
         match observe_capture_impl(ds, &setup, cap, true) {
             Ok(o) => observations.push(o),
@@ -795,7 +800,9 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
                 rejected.push(r);
             }
         }
+        stage.step();
     }
+    drop(stage);
     let symmetry = setup.target.symmetry();
     if !symmetry.is_trivial() {
         observations = resolve_symmetric_labelling(
@@ -976,7 +983,12 @@ fn observe_uncalibrated(
     let mut rejected = Vec::new();
     let mut found: Vec<(&b2b_dataset::Capture, Option<GrayImage>, BoardDetection)> = Vec::new();
     let mut guess: Option<CameraModel> = None;
+    let stage = progress::Stage::new(
+        &format!("{robot}: detecting the target (no intrinsics given)"),
+        data.captures.len(),
+    );
     for cap in &data.captures {
+        stage.step();
         let image = cap.image.as_ref().map(|p| p.display().to_string());
         let mut reject = |reason: String| {
             tracing::warn!(robot, row = cap.row, "capture rejected: {reason}");

@@ -96,6 +96,42 @@ impl RobotNoiseArgs {
     }
 }
 
+/// Shows the pipeline's long stages (detection in every image) as progress bars
+/// on stderr; drawn only when stderr is a terminal, so logs and pipes stay clean.
+pub fn show_pipeline_progress() {
+    #[derive(Debug, Default)]
+    struct Bars(std::sync::Mutex<Option<indicatif::ProgressBar>>);
+    impl b2b_pipeline::progress::ProgressSink for Bars {
+        fn begin(&self, what: &str, total: u64) {
+            let bar = indicatif::ProgressBar::new(total).with_prefix(what.to_owned());
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{prefix} [{bar:30}] {pos}/{len} ({elapsed})",
+                )
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+            if let Ok(mut b) = self.0.lock() {
+                *b = Some(bar);
+            }
+        }
+        fn step(&self) {
+            if let Ok(b) = self.0.lock()
+                && let Some(bar) = b.as_ref()
+            {
+                bar.inc(1);
+            }
+        }
+        fn end(&self) {
+            if let Ok(mut b) = self.0.lock()
+                && let Some(bar) = b.take()
+            {
+                bar.finish_and_clear();
+            }
+        }
+    }
+    b2b_pipeline::progress::set_sink(Box::new(Bars::default()));
+}
+
 /// clap's parser of a number that must be finite and `>= 0` (sigmas, tolerances).
 pub fn non_negative(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {

@@ -231,6 +231,7 @@ fn main() -> std::process::ExitCode {
         } => {
             let recorder = rerun.recorder(&format!("b2b-handeye-{robot}"))?;
             let choice: HandEyeChoice = method.parse().map_err(anyhow::Error::msg)?;
+            b2b_services::show_pipeline_progress();
             let obs = observe_robot(&load_dataset(&dataset)?, &robot)?;
             let options = RefineOptions {
                 refine_intrinsics,

@@ -225,6 +225,7 @@ fn main() -> std::process::ExitCode {
             rerun,
         } => {
             let recorder = rerun.recorder("b2b-coordinator")?;
+            b2b_services::show_pipeline_progress();
             let ds = load_dataset(&dataset)?;
             let method = match method {
                 Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
