@@ -1552,6 +1552,10 @@ pub struct CalibrationRun {
     /// Per robot, in the dataset's order (empty for the RGB-D method, which uses
     /// the dataset's intrinsics as given).
     pub cameras: Vec<RobotCamera>,
+    /// What was seen in each robot's captures, in the dataset's order (the
+    /// target's detections and the captures rejected before the fit; empty for
+    /// the RGB-D method), for recordings and reports.
+    pub observations: Vec<RobotObservations>,
 }
 
 /// The offline base-to-base calibration of a two-robot dataset.
@@ -1606,6 +1610,7 @@ pub fn base_to_base_run(
                 CalibrationRun {
                     result: r.result,
                     cameras: Vec::new(),
+                    observations: Vec::new(),
                 }
             });
         }
@@ -1639,7 +1644,11 @@ pub fn base_to_base_run(
             tracing::info!("{}", c.describe());
         }
     }
-    Ok(CalibrationRun { result, cameras })
+    Ok(CalibrationRun {
+        result,
+        cameras,
+        observations: vec![obs1, obs2],
+    })
 }
 
 /// Base-to-base from both robots' observations (offline or received live), by the

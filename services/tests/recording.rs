@@ -94,6 +94,27 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
             "{wanted} missing from the calibration's recording: {e:?}"
         );
     }
+    // Every capture of both robots, as the agents record theirs: its image, the
+    // detected and reprojected corners, the RMS (issue 16: an offline recording
+    // had nothing to see).
+    let summary = b2b_viz::summarize_rrd(&calib_rrd).unwrap();
+    let rows = |path: &str| {
+        summary
+            .iter()
+            .find(|(k, _)| k.trim_start_matches('/') == path.trim_start_matches('/'))
+            .map_or(0, |(_, v)| v.rows)
+    };
+    for base in [b2b_viz::Base::One, b2b_viz::Base::Two] {
+        for path in [
+            b2b_viz::paths::image(base),
+            b2b_viz::paths::detected(base),
+            b2b_viz::paths::reprojected(base),
+            b2b_viz::paths::rms(base),
+            b2b_viz::paths::flange(base),
+        ] {
+            assert_eq!(rows(&path), 12, "{path}: one row per capture");
+        }
+    }
 
     let verify_rrd = dir.path().join("verify.rrd");
     let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))

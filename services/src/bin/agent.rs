@@ -232,7 +232,8 @@ fn main() -> std::process::ExitCode {
             let recorder = rerun.recorder(&format!("b2b-handeye-{robot}"))?;
             let choice: HandEyeChoice = method.parse().map_err(anyhow::Error::msg)?;
             b2b_services::show_pipeline_progress();
-            let obs = observe_robot(&load_dataset(&dataset)?, &robot)?;
+            let ds = load_dataset(&dataset)?;
+            let obs = observe_robot(&ds, &robot)?;
             let options = RefineOptions {
                 refine_intrinsics,
                 ..noise.options()
@@ -249,7 +250,7 @@ fn main() -> std::process::ExitCode {
                 };
                 println!("{}", camera.describe());
             }
-            log_hand_eye_run(&recorder, &obs, &run.result)?;
+            log_hand_eye_run(&recorder, &ds, &obs, &run.result)?;
             finish_recording(recorder);
             println!("wrote {}", out.display());
             Ok(())

@@ -10,7 +10,9 @@ use b2b_pipeline::rgbd::RgbdOptions;
 use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, verify};
 use b2b_protocol::CalibrationResult;
 use b2b_services::outputs::{print_result, print_verification, report_inputs, write_result};
-use b2b_services::recording::{RerunArgs, finish_recording, log_result, log_verification};
+use b2b_services::recording::{
+    RerunArgs, finish_recording, log_offline_calibration, log_result, log_verification,
+};
 use b2b_services::{
     RobotNoiseArgs, coordinator, init_logging, non_negative, read_json, run_main, stop_flag,
     write_json,
@@ -238,6 +240,7 @@ fn main() -> std::process::ExitCode {
                     ..noise.options()
                 };
                 let run = base_to_base_run(&ds, method, &options)?;
+                log_offline_calibration(&recorder, &ds, &run);
                 (run.result, run.cameras)
             } else {
                 anyhow::ensure!(
@@ -249,8 +252,10 @@ fn main() -> std::process::ExitCode {
                 (result, vec![])
             };
             write_result(&out, &result).context("writing the result")?;
-            let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
-            log_result(&recorder, &result, Some(&order));
+            if !hand_eye.is_empty() {
+                let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
+                log_result(&recorder, &result, Some(&order));
+            }
             finish_recording(recorder);
             print_result(&result);
             for c in cameras
