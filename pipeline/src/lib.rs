@@ -1454,6 +1454,7 @@ fn hand_eye_with(
             CaptureSummary {
                 used: [(robot.to_owned(), used)].into_iter().collect(),
                 rejected,
+                per_capture: Vec::new(),
             }
         },
         timings_ms: Timings {
@@ -1753,6 +1754,12 @@ fn joint_base_to_base(
                 .into_iter()
                 .collect(),
             rejected,
+            per_capture: [obs1, obs2]
+                .into_iter()
+                .zip(&run.rejections)
+                .zip(&joint.per_capture)
+                .flat_map(|((o, r), fit)| capture_fits(o, r, fit))
+                .collect(),
         },
         timings_ms: Timings {
             detect: detect_ms,
@@ -1761,6 +1768,39 @@ fn joint_base_to_base(
         },
     };
     Ok((result, joint.cameras))
+}
+
+/// Each observation's fit for the result file: the fit's RMS and outliers (its
+/// entries run over the captures the seed's screen kept) and the viewing
+/// direction from its board pose.
+fn capture_fits(
+    obs: &RobotObservations,
+    rejections: &[Option<Rejection>],
+    fit: &[(f64, usize)],
+) -> Vec<b2b_protocol::CaptureFit> {
+    let mut fit = fit.iter();
+    obs.observations
+        .iter()
+        .zip(rejections)
+        .map(|(o, r)| {
+            let (rms_px, outlier_corners) = match r {
+                Some(Rejection::Gross { .. }) => (f64::NAN, o.board.pixels.len()),
+                _ => fit.next().copied().unwrap_or((f64::NAN, 0)),
+            };
+            let camera_in_target = o.camera_from_target.inverse().translation.vector;
+            let d = camera_in_target
+                .try_normalize(1e-12)
+                .unwrap_or_else(nalgebra::Vector3::z);
+            b2b_protocol::CaptureFit {
+                robot: obs.robot.clone(),
+                row: o.row,
+                image: o.image.clone(),
+                rms_px: rms_px.is_finite().then_some(rms_px),
+                outlier_corners,
+                view_direction: [d.x, d.y, d.z],
+            }
+        })
+        .collect()
 }
 
 /// The captures a fit used, and every rejected one with its reason: those

@@ -850,6 +850,7 @@ pub fn rgbd_from_views(
             .into_iter()
             .collect(),
             rejected,
+            per_capture: Vec::new(),
         },
         timings_ms: Timings {
             detect: 0.0,

@@ -174,6 +174,29 @@ pub struct CaptureSummary {
     /// Robot id to the number of captures used.
     pub used: BTreeMap<String, usize>,
     pub rejected: Vec<RejectedCapture>,
+    /// Each capture the fit saw, in each robot's order: how well the result
+    /// explains it, and where it was seen from (optional; the RGB-D method and
+    /// older files have none). Reports draw their per-capture panels from it.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub per_capture: Vec<CaptureFit>,
+}
+
+/// One capture in a result's [`CaptureSummary::per_capture`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CaptureFit {
+    pub robot: String,
+    /// Its row in the robot's capture list (1-based), or its number live.
+    pub row: usize,
+    /// Image file or other name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<String>,
+    /// RMS of its inlier corners under the result; `null` when it was left out
+    /// before the fit or has no inlier corner.
+    pub rms_px: Option<f64>,
+    /// Corners the robust stage rejected.
+    pub outlier_corners: usize,
+    /// Unit vector from the target's origin to the camera, in the target frame.
+    pub view_direction: [f64; 3],
 }
 
 /// Wall-clock time spent, in milliseconds.

@@ -163,15 +163,56 @@ fn read_json<T: serde::de::DeserializeOwned>(
 }
 
 impl ReportInputs {
-    /// A report of a result alone.
+    /// A report of a result alone: its per-capture panels come from the result's
+    /// own `captures.per_capture` (offline and live results carry it) and its
+    /// rejected captures.
     pub fn new(result: CalibrationResult) -> Self {
+        let mut captures: Vec<CaptureDetail> = result
+            .captures
+            .per_capture
+            .iter()
+            .map(|c| CaptureDetail {
+                robot: c.robot.clone(),
+                index: c.row as u64,
+                label: c.image.clone(),
+                rms_px: c.rms_px,
+                outlier_corners: Some(c.outlier_corners),
+                view_direction: Some(c.view_direction),
+                rejected: result
+                    .captures
+                    .rejected
+                    .iter()
+                    .find(|r| r.robot == c.robot && r.row == Some(c.row))
+                    .map(|r| r.reason.clone()),
+            })
+            .collect();
+        if !captures.is_empty() {
+            // Captures refused before the fit (no board found, ...) are in the
+            // rejected list only.
+            for r in &result.captures.rejected {
+                let known = captures
+                    .iter()
+                    .any(|c| c.robot == r.robot && Some(c.index) == r.row.map(|x| x as u64));
+                if !known {
+                    captures.push(CaptureDetail {
+                        robot: r.robot.clone(),
+                        index: r.row.unwrap_or(0) as u64,
+                        label: r.image.clone(),
+                        rms_px: None,
+                        outlier_corners: None,
+                        view_direction: None,
+                        rejected: Some(r.reason.clone()),
+                    });
+                }
+            }
+        }
         ReportInputs {
             title: "Base-to-base calibration".to_owned(),
             result,
             result_source: None,
             verify: None,
             verify_source: None,
-            captures: Vec::new(),
+            captures,
             touches: Vec::new(),
         }
     }
@@ -1084,8 +1125,9 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
         ),
     ];
 
-    let no_captures = "No per-capture details: RESULT.json alone has none (they come from \
-                       HANDEYE.json per_capture or from the capture messages).";
+    let no_captures = "No per-capture details: this RESULT.json has no captures.per_capture \
+                       (the RGB-D method and files written before it existed); give \
+                       HANDEYE.json files with --hand-eye.";
     let plots: Vec<(&str, &str, Option<String>, &str)> = vec![
         (
             "residuals.svg",

@@ -4,7 +4,10 @@
 use std::path::{Path, PathBuf};
 
 use b2b_protocol::messages::{BoardObservation, Capture, Intrinsics};
-use b2b_protocol::{CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResult, Pose, Timings};
+use b2b_protocol::{
+    CalibrationResult, CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResult, Pose,
+    Timings,
+};
 use b2b_report::{CaptureDetail, ReportError, ReportInputs, TouchDetail, write_report};
 use nalgebra::{Isometry3, Vector3};
 
@@ -206,4 +209,38 @@ fn bad_details_are_refused_and_names_are_escaped() {
     let files = write_report(&inputs, dir.path()).unwrap();
     let html = std::fs::read_to_string(files.index).unwrap();
     assert!(!html.contains("<script>") && html.contains("&lt;script&gt;"));
+}
+
+#[test]
+fn a_result_with_its_per_capture_fits_draws_every_capture_panel() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(fixture("RESULT.json")).unwrap();
+    let mut result: CalibrationResult = serde_json::from_str(&text).unwrap();
+    for robot in ["robot1", "robot2"] {
+        for row in 1..=6usize {
+            let a = row as f64;
+            let d = nalgebra::Vector3::new(0.3 * a.cos(), 0.3 * a.sin(), -1.0).normalize();
+            result.captures.per_capture.push(b2b_protocol::CaptureFit {
+                robot: robot.into(),
+                row,
+                image: Some(format!("images/{row:03}.png")),
+                rms_px: Some(0.1 + 0.01 * a),
+                outlier_corners: row % 2,
+                view_direction: [d.x, d.y, d.z],
+            });
+        }
+    }
+    let inputs = ReportInputs::new(result);
+    inputs.validate().unwrap();
+    // Twelve fitted captures, and the fixture's two rejected before the fit.
+    assert_eq!(inputs.captures.len(), 14);
+    let files = write_report(&inputs, dir.path()).unwrap();
+    let html = std::fs::read_to_string(&files.index).unwrap();
+    assert!(!html.contains("No per-capture details"), "{html}");
+    let names: Vec<String> = files
+        .plots
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    assert!(names.iter().any(|n| n == "residuals.svg"), "{names:?}");
 }

@@ -146,6 +146,40 @@ fn calibrate_then_verify_writes_conforming_files() {
     let v: b2b_protocol::VerifyReport =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v.n, 25);
+    // Every capture the fit saw is in the result with its RMS and viewing
+    // direction, so a report from RESULT.json alone has its per-capture panels
+    // (issue 16).
+    let per = &r.captures.per_capture;
+    for robot in ["robot1", "robot2"] {
+        let mine: Vec<_> = per.iter().filter(|c| c.robot == robot).collect();
+        let used = r.captures.used[robot];
+        assert!(
+            mine.len() >= used,
+            "{robot}: {} fits for {used} used captures",
+            mine.len()
+        );
+        assert_eq!(
+            mine.iter()
+                .filter(|c| c.rms_px.is_some_and(|e| e > 0.0 && e < 2.0))
+                .count(),
+            used,
+            "{robot}: {mine:?}"
+        );
+        for c in &mine {
+            let n = c.view_direction.iter().map(|x| x * x).sum::<f64>().sqrt();
+            assert!((n - 1.0).abs() < 1e-9, "{c:?}");
+        }
+    }
+    let inputs = b2b_report::ReportInputs::from_files(&result, Some(&json)).unwrap();
+    assert_eq!(
+        inputs
+            .captures
+            .iter()
+            .filter(|c| c.rms_px.is_some())
+            .count(),
+        r.captures.used.values().sum::<usize>()
+    );
+    inputs.validate().unwrap();
 }
 
 /// `calibrate --method rgbd --hand-eye`: hand-eyes from earlier `agent handeye` runs

@@ -98,6 +98,7 @@ fn result() -> CalibrationResult {
                 row: Some(3),
                 reason: "board not found".into(),
             }],
+            per_capture: Vec::new(),
         },
         timings_ms: Timings::default(),
     }
