@@ -1332,6 +1332,21 @@ fn covariance6(m: &Matrix6<f64>) -> [[f64; 6]; 6] {
 pub struct HandEyeRun {
     pub estimate: HandEyeEstimate,
     pub result: HandEyeResult,
+    /// The split-half check of the refined method (`None` for a closed form, or
+    /// too few captures to split); its covariance is already widened by it.
+    pub split: Option<SplitCheck>,
+}
+
+impl HandEyeRun {
+    /// The warning an operator needs when the check saw a systematic robot error.
+    pub fn systematic_warning(&self) -> Option<String> {
+        self.split.filter(SplitCheck::beyond_chance).map(|s| {
+            systematic_message(
+                &format!("robot {}'s T_flange_camera", self.result.robot),
+                &s,
+            )
+        })
+    }
 }
 
 /// Computes one robot's hand-eye by the chosen method. Closed forms are reported
@@ -1372,6 +1387,7 @@ fn hand_eye_with(
         .collect();
     let boards: Vec<BoardCapture> = obs.observations.iter().map(|o| o.board.clone()).collect();
     let mut rejections: Vec<Option<Rejection>> = vec![None; boards.len()];
+    let mut split = None;
     let estimate = match choice {
         HandEyeChoice::ClosedForm(m) => {
             let x = handeye::hand_eye(&base_from_flange, &camera_from_target, m)
@@ -1401,9 +1417,9 @@ fn hand_eye_with(
                 options,
             )
             .map_err(calib(robot))?;
-            if let Some(split) = run.split.filter(SplitCheck::beyond_chance) {
-                warn_systematic(&format!("robot {robot}'s T_flange_camera"), &split);
-            }
+            // Not logged here: a live agent recomputes its hand-eye with every
+            // capture; `agent handeye` prints it once (HandEyeRun::systematic_warning).
+            split = run.split;
             rejections = run.rejections;
             run.estimate
         }
@@ -1463,7 +1479,11 @@ fn hand_eye_with(
             total: obs.detect_ms + solve_ms,
         },
     };
-    Ok(HandEyeRun { estimate, result })
+    Ok(HandEyeRun {
+        estimate,
+        result,
+        split,
+    })
 }
 
 /// Which method computes `base1_from_base2`.
@@ -1913,13 +1933,13 @@ pub fn load_dataset(dir: &Path) -> Result<Dataset, PipelineError> {
     Ok(Dataset::load(dir)?)
 }
 
-/// The split-half check found the captures on opposite sides of the board
-/// disagreeing beyond their noise: says so, with the size of the gap and what
-/// to do (the covariance already includes the gap, not the common part).
-fn warn_systematic(what: &str, split: &SplitCheck) {
+/// What an operator is told when the split-half check found the captures on
+/// opposite sides of the board disagreeing beyond their noise: the size of the
+/// gap and what to do (the covariance already includes the gap, not the common
+/// part).
+fn systematic_message(what: &str, split: &SplitCheck) -> String {
     let d = split.difference;
-    tracing::warn!(
-        chi2 = split.chi2,
+    format!(
         "the captures on opposite sides of the board give {what} {:.2} mm / {:.3}° apart, \
          beyond their noise (chi-square {:.0} on 6 dof): a systematic robot error (kinematic \
          parameters, a sagging base or mount); the bound includes the disagreement, but not \
@@ -1928,7 +1948,11 @@ fn warn_systematic(what: &str, split: &SplitCheck) {
         d.fixed_rows::<3>(3).norm() * 1e3,
         d.fixed_rows::<3>(0).norm().to_degrees(),
         split.chi2
-    );
+    )
+}
+
+fn warn_systematic(what: &str, split: &SplitCheck) {
+    tracing::warn!("{}", systematic_message(what, split));
 }
 
 #[cfg(test)]

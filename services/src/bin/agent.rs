@@ -241,6 +241,9 @@ fn main() -> std::process::ExitCode {
             let run = hand_eye(&obs, choice, &options)?;
             write_json(&out, &run.result).context("writing the hand-eye result")?;
             print_hand_eye(&run, &obs);
+            if let Some(w) = run.systematic_warning() {
+                eprintln!("warning: {w}");
+            }
             if obs.estimated_intrinsics.is_some() || refine_intrinsics {
                 let camera = RobotCamera {
                     robot: robot.clone(),
