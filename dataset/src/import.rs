@@ -108,6 +108,33 @@ impl Transform {
     }
 }
 
+/// The `i`-th sample as a pose-only row (numbered from 1, no image).
+fn pose_only(
+    i: usize,
+    base_from_flange: Isometry3<f64>,
+    camera_from_target: Isometry3<f64>,
+) -> Capture {
+    Capture {
+        row: i + 1,
+        image: None,
+        depth: None,
+        base_from_flange,
+        camera_from_target: Some(camera_from_target),
+    }
+}
+
+/// Reads a YAML file into `T`, naming the file in errors.
+fn read_yaml<T: serde::de::DeserializeOwned>(file: &Path) -> Result<T, DatasetError> {
+    let text = std::fs::read_to_string(file).map_err(|source| DatasetError::Io {
+        file: file.to_owned(),
+        source,
+    })?;
+    serde_yaml::from_str(&text).map_err(|source| DatasetError::Yaml {
+        file: file.to_owned(),
+        source,
+    })
+}
+
 #[derive(Debug, Deserialize)]
 struct MoveItSample {
     effector_wrt_world: Vec<f64>,
@@ -176,15 +203,7 @@ fn matrix_isometry(
 /// Reads a MoveIt Calibration samples file as pose-only captures, in the file's
 /// order (rows numbered from 1).
 pub fn read_moveit_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
-    let text = std::fs::read_to_string(file).map_err(|source| DatasetError::Io {
-        file: file.to_owned(),
-        source,
-    })?;
-    let samples: Vec<MoveItSample> =
-        serde_yaml::from_str(&text).map_err(|source| DatasetError::Yaml {
-            file: file.to_owned(),
-            source,
-        })?;
+    let samples: Vec<MoveItSample> = read_yaml(file)?;
     if samples.is_empty() {
         return Err(DatasetError::Unsupported {
             at: Location::file(file),
@@ -195,21 +214,19 @@ pub fn read_moveit_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
         .iter()
         .enumerate()
         .map(|(i, s)| {
-            Ok(Capture {
-                row: i + 1,
-                image: None,
-                depth: None,
-                base_from_flange: matrix_isometry(
+            Ok(pose_only(
+                i,
+                matrix_isometry(
                     &s.effector_wrt_world,
                     file,
                     &format!("[{i}].effector_wrt_world"),
                 )?,
-                camera_from_target: Some(matrix_isometry(
+                matrix_isometry(
                     &s.object_wrt_sensor,
                     file,
                     &format!("[{i}].object_wrt_sensor"),
-                )?),
-            })
+                )?,
+            ))
         })
         .collect()
 }
@@ -217,14 +234,7 @@ pub fn read_moveit_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
 /// Reads an easy_handeye2 `.samples` file as pose-only captures, in the file's
 /// order (rows numbered from 1).
 pub fn read_easy_handeye_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
-    let text = std::fs::read_to_string(file).map_err(|source| DatasetError::Io {
-        file: file.to_owned(),
-        source,
-    })?;
-    let parsed: SamplesFile = serde_yaml::from_str(&text).map_err(|source| DatasetError::Yaml {
-        file: file.to_owned(),
-        source,
-    })?;
+    let parsed: SamplesFile = read_yaml(file)?;
     let kind = parsed
         .parameters
         .and_then(|p| p.calibration_type)
@@ -251,16 +261,12 @@ pub fn read_easy_handeye_samples(file: &Path) -> Result<Vec<Capture>, DatasetErr
         .iter()
         .enumerate()
         .map(|(i, s)| {
-            Ok(Capture {
-                row: i + 1,
-                image: None,
-                depth: None,
-                base_from_flange: s.robot.isometry(file, &format!("samples[{i}].robot"))?,
-                camera_from_target: Some(
-                    s.tracking
-                        .isometry(file, &format!("samples[{i}].tracking"))?,
-                ),
-            })
+            Ok(pose_only(
+                i,
+                s.robot.isometry(file, &format!("samples[{i}].robot"))?,
+                s.tracking
+                    .isometry(file, &format!("samples[{i}].tracking"))?,
+            ))
         })
         .collect()
 }

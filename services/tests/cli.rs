@@ -509,20 +509,20 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
     )
     .unwrap();
     let dataset = tmp.path().join("imported");
-    let import = |robot: &str| {
-        coordinator()
-            .args(["import", "--easy-handeye"])
-            .arg(&file)
+    // `coordinator import FORMAT FILE` of `robot` into the dataset.
+    let import = |format: &str, samples: &Path, robot: &str| {
+        let mut cmd = coordinator();
+        cmd.args(["import", format])
+            .arg(samples)
             .args(["--robot", robot, "--target"])
             .arg(&target)
             .arg("--camera")
             .arg(&camera)
             .arg("--out")
-            .arg(&dataset)
-            .output()
-            .unwrap()
+            .arg(&dataset);
+        cmd
     };
-    let out = import("robot1");
+    let out = import("--easy-handeye", &file, "robot1").output().unwrap();
     assert!(
         out.status.success(),
         "{}",
@@ -530,33 +530,20 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("robot1: 12 samples imported"));
     // A second robot joins the same dataset; the first one is never replaced.
-    assert!(import("robot2").status.success());
+    assert!(
+        import("--easy-handeye", &file, "robot2")
+            .status()
+            .unwrap()
+            .success()
+    );
     fails_cleanly(
-        coordinator()
-            .args(["import", "--easy-handeye"])
-            .arg(&file)
-            .args(["--robot", "robot1", "--target"])
-            .arg(&target)
-            .arg("--camera")
-            .arg(&camera)
-            .arg("--out")
-            .arg(&dataset),
+        &mut import("--easy-handeye", &file, "robot1"),
         "robot `robot1` is already in the dataset",
     );
     // The same samples as MoveIt Calibration saves them, for a third arm.
     let moveit_file = tmp.path().join("moveit.yaml");
     std::fs::write(&moveit_file, &moveit).unwrap();
-    let out = coordinator()
-        .args(["import", "--moveit"])
-        .arg(&moveit_file)
-        .args(["--robot", "robot3", "--target"])
-        .arg(&target)
-        .arg("--camera")
-        .arg(&camera)
-        .arg("--out")
-        .arg(&dataset)
-        .output()
-        .unwrap();
+    let out = import("--moveit", &moveit_file, "robot3").output().unwrap();
     assert!(
         out.status.success(),
         "{}",
@@ -604,15 +591,7 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
     let bad_moveit = tmp.path().join("bad-moveit.yaml");
     std::fs::write(&bad_moveit, sheared).unwrap();
     fails_cleanly(
-        coordinator()
-            .args(["import", "--moveit"])
-            .arg(&bad_moveit)
-            .args(["--robot", "robot4", "--target"])
-            .arg(&target)
-            .arg("--camera")
-            .arg(&camera)
-            .arg("--out")
-            .arg(&dataset),
+        &mut import("--moveit", &bad_moveit, "robot4"),
         "[0].effector_wrt_world",
     );
 
@@ -626,15 +605,7 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
     )
     .unwrap();
     fails_cleanly(
-        coordinator()
-            .args(["import", "--easy-handeye"])
-            .arg(&eob)
-            .args(["--robot", "robot3", "--target"])
-            .arg(&target)
-            .arg("--camera")
-            .arg(&camera)
-            .arg("--out")
-            .arg(&dataset),
+        &mut import("--easy-handeye", &eob, "robot3"),
         "`eye_on_base`: only eye-in-hand samples",
     );
     let text = std::fs::read_to_string(&file).unwrap();
@@ -644,15 +615,7 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
     let bad_file = tmp.path().join("bad.samples");
     std::fs::write(&bad_file, bad).unwrap();
     fails_cleanly(
-        coordinator()
-            .args(["import", "--easy-handeye"])
-            .arg(&bad_file)
-            .args(["--robot", "robot3", "--target"])
-            .arg(&target)
-            .arg("--camera")
-            .arg(&camera)
-            .arg("--out")
-            .arg(&dataset),
+        &mut import("--easy-handeye", &bad_file, "robot3"),
         "samples[0].robot",
     );
 }
