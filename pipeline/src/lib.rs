@@ -1446,25 +1446,13 @@ fn hand_eye_with(
         covariance: covariance6(&estimate.flange_from_camera_covariance),
         base_from_target: Some(Pose::from_isometry(&estimate.base_from_target)),
         reprojection_rms_px: estimate.rms_px,
-        per_capture: {
-            // The fit's entries are over the captures the seed's screen kept.
-            let mut fit = estimate.per_capture.iter();
-            obs.observations
-                .iter()
-                .zip(&rejections)
-                .map(|(o, r)| {
-                    let (rms_px, outlier_corners) = match r {
-                        Some(Rejection::Gross { .. }) => (f64::NAN, o.board.pixels.len()),
-                        _ => fit.next().copied().unwrap_or((f64::NAN, 0)),
-                    };
-                    CaptureResidual {
-                        image: o.image.clone().unwrap_or_else(|| format!("row {}", o.row)),
-                        rms_px: rms_px.is_finite().then_some(rms_px),
-                        outlier_corners,
-                    }
-                })
-                .collect()
-        },
+        per_capture: observation_fits(obs, &rejections, &estimate.per_capture)
+            .map(|(o, rms_px, outlier_corners)| CaptureResidual {
+                image: o.image.clone().unwrap_or_else(|| format!("row {}", o.row)),
+                rms_px,
+                outlier_corners,
+            })
+            .collect(),
         captures: {
             let (used, rejected) = after_fit(obs, &rejections);
             CaptureSummary {
@@ -1790,23 +1778,34 @@ fn joint_base_to_base(
     Ok((result, joint.cameras))
 }
 
-/// Each observation's fit for the result file: the fit's RMS and outliers (its
-/// entries run over the captures the seed's screen kept) and the viewing
-/// direction from its board pose.
+/// Each observation with its fit: the RMS of its inlier corners (`None` when it
+/// was left out before the fit or has none) and its outlier corners. The fit's
+/// entries run over the captures the seed's screen kept; one rejected there as
+/// a gross row counts every corner as an outlier. Both result files report it.
+fn observation_fits<'a>(
+    obs: &'a RobotObservations,
+    rejections: &'a [Option<Rejection>],
+    fit: &'a [(f64, usize)],
+) -> impl Iterator<Item = (&'a Observation, Option<f64>, usize)> + 'a {
+    let mut fit = fit.iter();
+    obs.observations.iter().zip(rejections).map(move |(o, r)| {
+        let (rms_px, outliers) = match r {
+            Some(Rejection::Gross { .. }) => (f64::NAN, o.board.pixels.len()),
+            _ => fit.next().copied().unwrap_or((f64::NAN, 0)),
+        };
+        (o, rms_px.is_finite().then_some(rms_px), outliers)
+    })
+}
+
+/// Each observation's fit for `RESULT.json` ([`observation_fits`]) with the
+/// direction it was seen from.
 fn capture_fits(
     obs: &RobotObservations,
     rejections: &[Option<Rejection>],
     fit: &[(f64, usize)],
 ) -> Vec<b2b_protocol::CaptureFit> {
-    let mut fit = fit.iter();
-    obs.observations
-        .iter()
-        .zip(rejections)
-        .map(|(o, r)| {
-            let (rms_px, outlier_corners) = match r {
-                Some(Rejection::Gross { .. }) => (f64::NAN, o.board.pixels.len()),
-                _ => fit.next().copied().unwrap_or((f64::NAN, 0)),
-            };
+    observation_fits(obs, rejections, fit)
+        .map(|(o, rms_px, outlier_corners)| {
             let camera_in_target = o.camera_from_target.inverse().translation.vector;
             let d = camera_in_target
                 .try_normalize(1e-12)
@@ -1815,7 +1814,7 @@ fn capture_fits(
                 robot: obs.robot.clone(),
                 row: o.row,
                 image: o.image.clone(),
-                rms_px: rms_px.is_finite().then_some(rms_px),
+                rms_px,
                 outlier_corners,
                 view_direction: [d.x, d.y, d.z],
             }

@@ -401,15 +401,6 @@ impl LiveSource {
         (base_from_flange * self.cfg.mount_approx).inverse() * board
     }
 
-    /// Where the board centre should be, in the camera at `base_from_flange`.
-    fn predicted_centre(
-        &self,
-        base_from_flange: &Iso3,
-        progress: &Progress,
-    ) -> Option<Point3<f64>> {
-        Some(self.expected_view(base_from_flange, Some(progress)) * self.target.centre())
-    }
-
     /// One viewpoint: the routine decides ([`Routine::step_visit`]); this does
     /// what it asks (move, settle and capture, detect, re-centre) and tells it
     /// what happened.
@@ -522,10 +513,9 @@ impl LiveSource {
         };
         let view = View {
             base_from_flange,
-            predicted_centre_in_camera: board
-                .is_err()
-                .then(|| self.predicted_centre(&base_from_flange, progress))
-                .flatten(),
+            // Where the board should be, when it was not found: the same belief
+            // that labelled a symmetric board.
+            predicted_centre_in_camera: board.is_err().then(|| expected * self.target.centre()),
             board,
             sharpness,
         };

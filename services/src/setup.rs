@@ -242,6 +242,10 @@ pub fn connect(
         count: live.count,
         ..Default::default()
     };
+    let cart_exe = match cart {
+        Cart::Sim(_) => Some(crate::sim_cart::exe()?),
+        Cart::Fri(_) => None,
+    };
     let (setup, conn) = match cart {
         Cart::Sim(scene) => {
             let setup = match &live.setup {
@@ -252,12 +256,8 @@ pub fn connect(
                 None => {
                     let dir = std::env::temp_dir()
                         .join(format!("b2b-agent-{}-{robot}", std::process::id()));
-                    CellSetup::load(&crate::sim_cart::derive_setup(
-                        &crate::sim_cart::exe()?,
-                        scene,
-                        robot,
-                        &dir,
-                    )?)?
+                    let exe = cart_exe.as_deref().context("no simulated cart binary")?;
+                    CellSetup::load(&crate::sim_cart::derive_setup(exe, scene, robot, &dir)?)?
                 }
             };
             // A unique service root per run, so two simulated cells never mix.
@@ -289,9 +289,9 @@ pub fn connect(
     if features.is_some() && setup.depth {
         frames = frames.with_depth(&conn.camera_prefix, robot)?;
     }
-    let process = match cart {
-        Cart::Sim(scene) => Some(crate::sim_cart::spawn(
-            &crate::sim_cart::exe()?,
+    let process = match (cart, &cart_exe) {
+        (Cart::Sim(scene), Some(exe)) => Some(crate::sim_cart::spawn(
+            exe,
             &crate::sim_cart::CartRun {
                 scene,
                 robot,
@@ -300,7 +300,7 @@ pub fn connect(
                 camera_prefix: &conn.camera_prefix,
             },
         )?),
-        Cart::Fri(_) => None,
+        _ => None,
     };
     let source = live_source(&setup, robot, mode, plan, fri, Box::new(frames), features)?;
     Ok((source, process))
