@@ -2,7 +2,8 @@
 //!
 //! Goal: the whole solve over 2 x 30 captures x 54 corners in <= 50 ms
 //! (`default_estimator_2x30x54`: closed-form seeds with the gross-row screen,
-//! the refinement with its noise model, and the split-half check); with both
+//! the refinement with its noise model, and the split-half check), three
+//! robots in one problem in <= 100 ms (`default_estimator_3x30x54`); with both
 //! cameras' intrinsics refined too, at most 200 ms more. The pipeline's
 //! initial `calibrateCamera` fits add ~40 ms per robot
 //! (`pipeline/tests/intrinsics.rs`). Run `cargo bench -p b2b-calib --bench
@@ -10,10 +11,10 @@
 //! smoke test.
 
 use b2b_calib::base_to_base::{BaseToBaseInitial, perturb_initial, refine_base_to_base};
-use b2b_calib::estimate::{RobotCaptures, estimate_base_to_base};
+use b2b_calib::estimate::{RobotCaptures, estimate_base_to_base, estimate_bases};
 use b2b_calib::pose::perturb_left;
 use b2b_calib::refine::{RefineOptions, refine_hand_eye};
-use b2b_calib::synth::{SynthConfig, random_robot, two_robots};
+use b2b_calib::synth::{SynthConfig, random_robot, three_robots, two_robots};
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Vector6;
 use std::hint::black_box;
@@ -71,6 +72,25 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             estimate_base_to_base([black_box(&robots[0]), &robots[1]], &opts).expect("converges")
         })
+    });
+
+    // Three robots in one problem (issue: <= 100 ms for 3 x 30 captures),
+    // the whole default estimator with its split-half checks.
+    let three = three_robots(2, &cfg).expect("synthetic problem");
+    let caps3: Vec<_> = three.robots.iter().map(|r| r.board_captures()).collect();
+    let robots3: Vec<RobotCaptures<'_>> = three
+        .robots
+        .iter()
+        .zip(&caps3)
+        .map(|(r, caps)| RobotCaptures {
+            camera: &cfg.camera,
+            captures: caps,
+            camera_from_target: &r.camera_from_target,
+        })
+        .collect();
+    let refs3: Vec<&RobotCaptures<'_>> = robots3.iter().collect();
+    c.bench_function("default_estimator_3x30x54", |b| {
+        b.iter(|| estimate_bases(black_box(&refs3), &opts).expect("converges"))
     });
 
     // The same problem with both cameras' nine intrinsics refined jointly, from

@@ -5,6 +5,9 @@ pub enum CalibError {
     /// Fewer captures (or points) than the method needs.
     #[error("too few captures: {got}, need at least {need}")]
     TooFewCaptures { got: usize, need: usize },
+    /// A joint problem over robots with fewer robots than it needs.
+    #[error("too few robots: {got}, need at least {need}")]
+    TooFewRobots { got: usize, need: usize },
     /// Fewer touch pairs (or touches of one location) than a check needs.
     #[error("too few touch pairs: {got}, need at least {need}")]
     TooFewTouches { got: usize, need: usize },

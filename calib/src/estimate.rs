@@ -16,7 +16,9 @@
 
 use nalgebra::{Point3, UnitQuaternion};
 
-use crate::base_to_base::{BaseToBaseEstimate, BaseToBaseInitial, refine_base_to_base};
+use nalgebra::DMatrix;
+
+use crate::base_to_base::{BaseToBaseEstimate, BasesEstimate, BasesInitial, refine_bases};
 use crate::camera::CameraModel;
 use crate::handeye::{self, HandEyeMethod};
 use crate::refine::{
@@ -243,49 +245,87 @@ pub struct BaseToBaseRun {
 }
 
 /// Seed and screen each robot, then refine both as one problem from the seeds.
+/// The two-robot case of [`estimate_bases`].
 pub fn estimate_base_to_base(
     robots: [&RobotCaptures<'_>; 2],
     options: &RefineOptions,
 ) -> Result<BaseToBaseRun, CalibError> {
-    let seeds = [
-        seed_hand_eye(robots[0], options)?,
-        seed_hand_eye(robots[1], options)?,
-    ];
-    let c1 = kept(robots[0].captures, &seeds[0].rejections);
-    let c2 = kept(robots[1].captures, &seeds[1].rejections);
-    let initial = BaseToBaseInitial {
-        flange_from_camera: [seeds[0].flange_from_camera, seeds[1].flange_from_camera],
-        base1_from_target: seeds[0].base_from_target,
-        base1_from_base2: seeds[0].base_from_target * seeds[1].base_from_target.inverse(),
-    };
-    let estimate = refine_base_to_base(
-        [robots[0].camera, robots[1].camera],
-        [&c1, &c2],
-        &initial,
-        options,
-    )?;
-    let rejections = [
-        merge(&seeds[0].rejections, &estimate.rejections[0]),
-        merge(&seeds[1].rejections, &estimate.rejections[1]),
-    ];
-    let mut estimate = estimate;
-    let u1 = kept(&c1, &estimate.rejections[0]);
-    let u2 = kept(&c2, &estimate.rejections[1]);
-
-    let split = split_check_base_to_base(
-        [robots[0].camera, robots[1].camera],
-        [&u1, &u2],
-        &estimate,
-        options,
-    );
-    if let Some(s) = split {
-        s.widen(&mut estimate.covariance);
-    }
-    estimate.covariance += common_mode(&estimate, [&u1, &u2], &options.systematic);
+    let run = estimate_bases(&robots, options)?;
     Ok(BaseToBaseRun {
+        estimate: run.estimate.into_two(),
+        rejections: crate::base_to_base::two(run.rejections),
+        split: run.splits[0],
+    })
+}
+
+/// N robots' bases by the default estimator, with each robot's captures'
+/// reasons for being out (all captures, in order).
+#[derive(Debug, Clone)]
+pub struct BasesRun {
+    /// Its covariance includes the split-half checks' widening and the
+    /// configured systematic error.
+    pub estimate: BasesEstimate,
+    pub rejections: Vec<Vec<Option<Rejection>>>,
+    /// Per robot after the reference: the split-half check of its base
+    /// (`None` when too few captures to split).
+    pub splits: Vec<Option<SplitCheck>>,
+}
+
+/// Seed and screen each robot, then refine all of them as one problem
+/// ([`refine_bases`]) from the seeds: robot 0's base is the reference.
+pub fn estimate_bases(
+    robots: &[&RobotCaptures<'_>],
+    options: &RefineOptions,
+) -> Result<BasesRun, CalibError> {
+    if robots.len() < 2 {
+        return Err(CalibError::TooFewRobots {
+            got: robots.len(),
+            need: 2,
+        });
+    }
+    let seeds = robots
+        .iter()
+        .map(|r| seed_hand_eye(r, options))
+        .collect::<Result<Vec<_>, _>>()?;
+    let captures: Vec<Vec<BoardCapture>> = robots
+        .iter()
+        .zip(&seeds)
+        .map(|(r, s)| kept(r.captures, &s.rejections))
+        .collect();
+    let reference = seeds[0].base_from_target;
+    let initial = BasesInitial {
+        flange_from_camera: seeds.iter().map(|s| s.flange_from_camera).collect(),
+        ref_from_target: reference,
+        ref_from_base: seeds[1..]
+            .iter()
+            .map(|s| reference * s.base_from_target.inverse())
+            .collect(),
+    };
+    let cameras: Vec<&CameraModel> = robots.iter().map(|r| r.camera).collect();
+    let slices: Vec<&[BoardCapture]> = captures.iter().map(Vec::as_slice).collect();
+    let mut estimate = refine_bases(&cameras, &slices, &initial, options)?;
+    let rejections = seeds
+        .iter()
+        .zip(&estimate.rejections)
+        .map(|(s, fit)| merge(&s.rejections, fit))
+        .collect();
+    let used: Vec<Vec<BoardCapture>> = captures
+        .iter()
+        .zip(&estimate.rejections)
+        .map(|(c, r)| kept(c, r))
+        .collect();
+    let used: Vec<&[BoardCapture]> = used.iter().map(Vec::as_slice).collect();
+    let splits = split_check_bases(&cameras, &used, &estimate, options);
+    for (k, split) in splits.iter().enumerate() {
+        if let Some(s) = split {
+            estimate.widen_base(k + 1, s.factor, &s.systematic());
+        }
+    }
+    estimate.covariance += common_mode(&estimate, &used, &options.systematic);
+    Ok(BasesRun {
         estimate,
         rejections,
-        split,
+        splits,
     })
 }
 
@@ -321,17 +361,20 @@ pub struct SplitCheck {
     pub difference_covariance: nalgebra::Matrix6<f64>,
 }
 
-/// The covariance of `base1_from_base2` that a flange pose error common to
-/// all of a robot's captures causes: the configured systematic error,
-/// isotropic about the flange at the robot's mean capture pose. A common error
-/// `δ1` of robot 1 moves the board it sees by `δ1`; one of robot 2 moves
-/// `base1_from_base2` by `-Ad(Z) δ2`: `Σ1 + Ad(Z) Σ2 Ad(Z)ᵀ`.
+/// The covariance of the bases that a flange pose error common to all of a
+/// robot's captures causes: the configured systematic error, isotropic about
+/// the flange at the robot's mean capture pose. A common error `δ0` of the
+/// reference robot moves the target it sees by `δ0`, and with it every other
+/// base by the same `δ0` (every block, off-diagonal ones included); one of
+/// robot `r` moves its own base by `-Ad(ref_from_base_r) δr`. With two robots:
+/// `Σ0 + Ad(Z) Σ1 Ad(Z)ᵀ` on `base1_from_base2`.
 fn common_mode(
-    estimate: &BaseToBaseEstimate,
-    captures: [&[BoardCapture]; 2],
+    estimate: &BasesEstimate,
+    captures: &[&[BoardCapture]],
     systematic: &crate::refine::RobotNoise,
-) -> nalgebra::Matrix6<f64> {
-    let mut out = nalgebra::Matrix6::zeros();
+) -> DMatrix<f64> {
+    let m = 6 * (captures.len() - 1);
+    let mut out = DMatrix::zeros(m, m);
     if systematic.sigma_t_m == 0.0 && systematic.sigma_r_rad == 0.0 {
         return out;
     }
@@ -353,10 +396,16 @@ fn common_mode(
         let ad = crate::pose::adjoint(&mean);
         let sigma = ad * local * ad.transpose();
         if r == 0 {
-            out += sigma;
+            for a in 0..m / 6 {
+                for b in 0..m / 6 {
+                    let mut block = out.view_mut((6 * a, 6 * b), (6, 6));
+                    block += sigma;
+                }
+            }
         } else {
-            let z = crate::pose::adjoint(&estimate.base1_from_base2);
-            out += z * sigma * z.transpose();
+            let z = crate::pose::adjoint(&estimate.base(r));
+            let mut block = out.view_mut((6 * (r - 1), 6 * (r - 1)), (6, 6));
+            block += z * sigma * z.transpose();
         }
     }
     out
@@ -463,49 +512,68 @@ fn birge(d: &nalgebra::Vector6<f64>, c: &nalgebra::Matrix6<f64>) -> Option<Split
     })
 }
 
-/// The split-half check of a base-to-base fit over the captures it used.
-pub fn split_check_base_to_base(
-    cameras: [&CameraModel; 2],
-    captures: [&[BoardCapture]; 2],
-    estimate: &BaseToBaseEstimate,
+/// The split-half check of each base of a joint fit over the captures it
+/// used: every robot's captures are halved around the target, each half of
+/// the whole problem is fitted alone, and each base's two estimates are
+/// compared. Per robot after the reference; all `None` when any robot has too
+/// few captures to split.
+pub fn split_check_bases(
+    cameras: &[&CameraModel],
+    captures: &[&[BoardCapture]],
+    estimate: &BasesEstimate,
     options: &RefineOptions,
-) -> Option<SplitCheck> {
-    let centre = target_centre(captures[0]);
-    let w1 = estimate.base1_from_target;
-    let w2 = estimate.base1_from_base2.inverse() * w1;
-    let split = [
-        halves(captures[0], &(w1 * centre)),
-        halves(captures[1], &(w2 * centre)),
-    ];
+) -> Vec<Option<SplitCheck>> {
+    let n = captures.len();
+    let none = vec![None; n.saturating_sub(1)];
+    let Some(first) = captures.first() else {
+        return none;
+    };
+    let centre = target_centre(first);
+    let split: Vec<[Vec<usize>; 2]> = captures
+        .iter()
+        .enumerate()
+        .map(|(r, caps)| {
+            let base_from_target = estimate.base(r).inverse() * estimate.ref_from_target;
+            halves(caps, &(base_from_target * centre))
+        })
+        .collect();
     if split.iter().flatten().any(|h| h.len() < SPLIT_MIN_PER_HALF) {
-        return None;
+        return none;
     }
-    let initial = BaseToBaseInitial {
-        flange_from_camera: estimate.flange_from_camera,
-        base1_from_target: estimate.base1_from_target,
-        base1_from_base2: estimate.base1_from_base2,
+    let initial = BasesInitial {
+        flange_from_camera: estimate.flange_from_camera.clone(),
+        ref_from_target: estimate.ref_from_target,
+        ref_from_base: estimate.ref_from_base.clone(),
     };
     let fit = |h: usize| {
-        let pick = |r: usize| -> Vec<BoardCapture> {
-            split[r][h]
-                .iter()
-                .map(|i| captures[r][*i].clone())
-                .collect()
-        };
-        let (a, b) = (pick(0), pick(1));
-        let covs = a
-            .iter()
-            .map(|c| estimate.noise[0].base_covariance(&c.base_from_flange))
-            .chain(
-                b.iter()
-                    .map(|c| estimate.noise[1].base_covariance(&c.base_from_flange)),
-            )
+        let picked: Vec<Vec<BoardCapture>> = (0..n)
+            .map(|r| {
+                split[r][h]
+                    .iter()
+                    .map(|i| captures[r][*i].clone())
+                    .collect()
+            })
             .collect();
-        refine_base_to_base(cameras, [&a, &b], &initial, &split_options(options, covs)).ok()
+        let covs = picked
+            .iter()
+            .enumerate()
+            .flat_map(|(r, caps)| {
+                caps.iter()
+                    .map(move |c| estimate.noise[r].base_covariance(&c.base_from_flange))
+            })
+            .collect();
+        let slices: Vec<&[BoardCapture]> = picked.iter().map(Vec::as_slice).collect();
+        refine_bases(cameras, &slices, &initial, &split_options(options, covs)).ok()
     };
-    let (a, b) = (fit(0)?, fit(1)?);
-    let d = crate::pose::left_difference(&a.base1_from_base2, &b.base1_from_base2);
-    birge(&d, &(a.covariance + b.covariance))
+    let (Some(a), Some(b)) = (fit(0), fit(1)) else {
+        return none;
+    };
+    (1..n)
+        .map(|r| {
+            let d = crate::pose::left_difference(&a.base(r), &b.base(r));
+            birge(&d, &(a.block(r, r) + b.block(r, r)))
+        })
+        .collect()
 }
 
 /// The split-half check of a hand-eye fit over the captures it used.

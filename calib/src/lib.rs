@@ -14,7 +14,9 @@
 //! - [`degeneracy`]: the checks every solver runs first, with reasons.
 //! - [`refine`]: the joint reprojection-error refinement of one robot, seeded by a
 //!   closed form, with robust loss, MAD outlier rejection and covariance.
-//! - [`base_to_base`]: both robots as one problem, with `base1_from_base2`.
+//! - [`base_to_base`]: N robots as one problem, every base in the first robot's.
+//! - [`drift`]: the drift watch during the operation (a sequential test of
+//!   each observation against the result).
 //! - [`sanity`]: pre-fit checks that flange and board poses belong together
 //!   (quaternion order, units, mismatched rows), from invariants of AX = XB.
 //! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
@@ -26,6 +28,7 @@
 pub mod base_to_base;
 pub mod camera;
 pub mod degeneracy;
+pub mod drift;
 pub mod estimate;
 pub mod handeye;
 pub mod metrics;

@@ -339,3 +339,49 @@ pub fn two_robots(seed: u64, cfg: &SynthConfig) -> Result<TwoRobots, CalibError>
         base1_from_base2,
     })
 }
+
+/// Three robots sharing a board: [`two_robots`] (the same two for the same
+/// seed) and a third cart about a metre from both, beside the board, facing it.
+#[derive(Debug, Clone)]
+pub struct ThreeRobots {
+    pub robots: [SynthRobot; 3],
+    /// `base1_from_base2`, `base1_from_base3`.
+    pub base1_from_base: [Iso3; 2],
+}
+
+/// [`two_robots`] and a third robot; deterministic for a seed.
+pub fn three_robots(seed: u64, cfg: &SynthConfig) -> Result<ThreeRobots, CalibError> {
+    let two = two_robots(seed, cfg)?;
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x7468_7265_6500_0003);
+    let base1_from_base3 = Iso3::from_parts(
+        Translation3::new(
+            0.5 + rng.random_range(-0.1..0.1),
+            1.0 + rng.random_range(-0.1..0.1),
+            rng.random_range(-0.05..0.05),
+        ),
+        UnitQuaternion::from_axis_angle(
+            &Vector3::z_axis(),
+            -std::f64::consts::FRAC_PI_2 + rng.random_range(-0.2..0.2),
+        ),
+    );
+    let x3 = Iso3::from_parts(
+        Translation3::new(
+            rng.random_range(-0.06..0.06),
+            rng.random_range(-0.06..0.06),
+            0.05,
+        ),
+        UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, rng.random_range(-3.0..3.0))),
+    );
+    let base1_from_target = two.robots[0].base_from_target;
+    let r3 = make_robot(
+        &mut rng,
+        cfg,
+        x3,
+        base1_from_base3.inverse() * base1_from_target,
+    )?;
+    let [r1, r2] = two.robots;
+    Ok(ThreeRobots {
+        robots: [r1, r2, r3],
+        base1_from_base: [two.base1_from_base2, base1_from_base3],
+    })
+}

@@ -250,6 +250,16 @@ pub enum DatasetError {
     /// `ground_truth.json` or `reference.json` names a robot that the manifest does not list.
     #[error("{at}: robot `{robot}` is not in dataset.json")]
     UnknownRobot { at: Location, robot: String },
+
+    /// A key of `ground_truth.json` or `reference.json` that starts like a robot's base
+    /// (`T_base1_base`) but is not `T_base1_base2` or `T_base1_base<n>` for a further
+    /// robot `n` (3 up to the number of robots in dataset.json); `reason` quotes the key.
+    #[error("{at}: {reason}")]
+    UnknownBaseKey { at: Location, reason: String },
+
+    /// A `touch_points_<a>_<b>.csv` whose name does not pick one pair of robots.
+    #[error("{}: {reason}", file.display())]
+    AmbiguousTouchFile { file: PathBuf, reason: String },
 }
 
 impl DatasetError {
@@ -261,7 +271,8 @@ impl DatasetError {
             | Io { .. }
             | Json { .. }
             | Yaml { .. }
-            | TouchPointsNeedTwoRobots { .. } => None,
+            | TouchPointsNeedTwoRobots { .. }
+            | AmbiguousTouchFile { .. } => None,
             WrongFormat { at, .. }
             | UnknownTargetKind { at, .. }
             | InvalidTarget { at, .. }
@@ -286,6 +297,7 @@ impl DatasetError {
             | DepthWithoutUnit { at, .. }
             | BadPath { at, .. }
             | UnknownRobot { at, .. }
+            | UnknownBaseKey { at, .. }
             | Unsupported { at, .. } => Some(at),
         }
     }

@@ -312,6 +312,7 @@ pub fn add_robot(
             manifest: crate::Manifest::new(name, target, vec![]),
             robots: vec![],
             touch_points: None,
+            pair_touch_points: Default::default(),
         }
     };
     let mut entry = crate::RobotManifest::new(robot);

@@ -33,6 +33,7 @@ pub mod pose;
 mod table;
 mod truth;
 
+use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -72,14 +73,63 @@ pub struct Dataset {
     pub manifest: Manifest,
     /// One entry per robot of the manifest, in the manifest's order.
     pub robots: Vec<RobotData>,
-    /// `touch_points.csv`, when the dataset has one.
+    /// `touch_points.csv`, when the dataset has one: the touches of the first two robots.
     pub touch_points: Option<Vec<TouchPair>>,
+    /// The `touch_points_<a>_<b>.csv` files, keyed by the robot ids `(a, b)`: in each
+    /// [`TouchPair`], `tip1_in_base1` is robot `a`'s tip in `a`'s base and
+    /// `tip2_in_base2` robot `b`'s in `b`'s. See [`Dataset::touches_between`].
+    pub pair_touch_points: BTreeMap<(String, String), Vec<TouchPair>>,
+}
+
+/// The file of the touches of robots `a` and `b` (in that order) other than
+/// `touch_points.csv`: `touch_points_<a>_<b>.csv`.
+pub fn pair_touch_file_name(a: &str, b: &str) -> String {
+    format!("touch_points_{a}_{b}.csv")
+}
+
+/// Every ordered pair of distinct robot ids with the file name of its touches. Robot ids
+/// may contain `_`, so one name can stand for two pairs (`a` + `b_c` and `a_b` + `c`):
+/// such a name is found twice here.
+fn pair_files(ids: &[&str]) -> Vec<((String, String), String)> {
+    let mut out = vec![];
+    for a in ids {
+        for b in ids {
+            if a != b {
+                out.push((
+                    ((*a).to_owned(), (*b).to_owned()),
+                    pair_touch_file_name(a, b),
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// The error for a pair file whose name stands for more than one pair of robots.
+fn ambiguous_pair_file(
+    root: &Path,
+    name: &str,
+    pairs: &[((String, String), String)],
+) -> Option<DatasetError> {
+    let meanings: Vec<String> = pairs
+        .iter()
+        .filter(|(_, n)| n == name)
+        .map(|((a, b), _)| format!("`{a}` with `{b}`"))
+        .collect();
+    (meanings.len() > 1).then(|| DatasetError::AmbiguousTouchFile {
+        file: root.join(name),
+        reason: format!(
+            "the name stands for the touches of {}; rename a robot so that              touch_points_<a>_<b>.csv names one pair",
+            meanings.join(" and of ")
+        ),
+    })
 }
 
 impl Dataset {
-    /// Reads `dataset.json`, every robot's `captures.csv` and `touch_points.csv` from
-    /// `dir`, and validates all of it, including that every named image exists. Never
-    /// reads `ground_truth.json` or `reference.json`.
+    /// Reads `dataset.json`, every robot's `captures.csv`, `touch_points.csv` and the
+    /// `touch_points_<a>_<b>.csv` of every ordered pair of manifest robots from `dir`, and
+    /// validates all of it, including that every named image exists. Never reads
+    /// `ground_truth.json` or `reference.json`.
     pub fn load(dir: &Path) -> Result<Dataset, DatasetError> {
         let root = absolute(dir);
         let manifest = Manifest::load(&root)?;
@@ -120,18 +170,33 @@ impl Dataset {
         } else {
             None
         };
+        let ids: Vec<&str> = manifest.robots.iter().map(|r| r.id.as_str()).collect();
+        let pairs = pair_files(&ids);
+        let mut pair_touch_points = BTreeMap::new();
+        for (pair, name) in &pairs {
+            let file = root.join(name);
+            if !file.exists() {
+                continue;
+            }
+            if let Some(e) = ambiguous_pair_file(&root, name, &pairs) {
+                return Err(e);
+            }
+            pair_touch_points.insert(pair.clone(), captures::read_touch_points(&file)?);
+        }
         Ok(Dataset {
             root,
             manifest,
             robots,
             touch_points,
+            pair_touch_points,
         })
     }
 
-    /// Writes `dataset.json`, every robot's `captures.csv` and `touch_points.csv` into
-    /// `dir` (creating folders as needed; `self.root` is not used). Everything is checked
-    /// first with the reader's rules, so an invalid dataset writes nothing. Capture rows
-    /// are numbered by position. Without touch points, a `touch_points.csv` left in `dir`
+    /// Writes `dataset.json`, every robot's `captures.csv`, `touch_points.csv` and the
+    /// `touch_points_<a>_<b>.csv` files into `dir` (creating folders as needed;
+    /// `self.root` is not used). Everything is checked first with the reader's rules, so
+    /// an invalid dataset writes nothing. Capture rows are numbered by position. A
+    /// touch file of this dataset's robots left in `dir` that this dataset does not have
     /// is removed, so that the folder describes exactly this dataset. Images are not
     /// written: the caller copies them to the paths the captures name.
     pub fn write(&self, dir: &Path) -> Result<(), DatasetError> {
@@ -173,35 +238,32 @@ impl Dataset {
                     robots: self.manifest.robots.len(),
                 });
             }
-            let with_location = pairs.iter().any(|p| p.location.is_some());
-            let mut rows = Vec::with_capacity(pairs.len());
-            for (i, pair) in pairs.iter().enumerate() {
-                captures::check_touch(&touch_file, i + 1, None, pair)?;
-                let mut row = Vec::with_capacity(7);
-                if with_location {
-                    match pair.location.as_deref().map(str::trim) {
-                        Some(l) if !l.is_empty() => row.push(l.to_owned()),
-                        _ => {
-                            return Err(DatasetError::EmptyLocation {
-                                at: Location::cell(&touch_file, i + 1, None, LOCATION_COLUMN),
-                            });
-                        }
-                    }
+            files.push((touch_file.clone(), render_touches(&touch_file, pairs)?));
+        }
+        let all_pairs = pair_files(&expected);
+        let mut written_pairs = vec![];
+        for ((a, b), pairs) in &self.pair_touch_points {
+            let name = pair_touch_file_name(a, b);
+            let file = root.join(&name);
+            for id in [a, b] {
+                if self.manifest.robot(id).is_none() {
+                    return Err(DatasetError::UnknownRobot {
+                        at: Location::file(&file),
+                        robot: id.clone(),
+                    });
                 }
-                row.extend(captures::touch_numbers(pair).map(pose::format_number));
-                rows.push(row);
             }
-            let header: Vec<&str> = if with_location {
-                std::iter::once(LOCATION_COLUMN)
-                    .chain(TOUCH_COLUMNS)
-                    .collect()
-            } else {
-                TOUCH_COLUMNS.to_vec()
-            };
-            files.push((
-                touch_file.clone(),
-                table::render(&touch_file, &header, &rows)?,
-            ));
+            if a == b {
+                return Err(DatasetError::RobotMismatch {
+                    at: Location::file(&file),
+                    reason: format!("touches pair two robots, not `{a}` with itself"),
+                });
+            }
+            if let Some(e) = ambiguous_pair_file(&root, &name, &all_pairs) {
+                return Err(e);
+            }
+            files.push((file, render_touches(&root.join(&name), pairs)?));
+            written_pairs.push(name);
         }
         let mut json = serde_json::to_string_pretty(&self.manifest)
             .map_err(|e| DatasetError::json(&manifest_file, e))?;
@@ -214,10 +276,37 @@ impl Dataset {
             }
             write_atomic(file, bytes)?;
         }
-        if self.touch_points.is_none() && touch_file.is_file() {
-            fs::remove_file(&touch_file).map_err(|e| DatasetError::io(&touch_file, e))?;
+        let mut stale: Vec<PathBuf> = all_pairs
+            .into_iter()
+            .filter(|(_, name)| !written_pairs.contains(name))
+            .map(|(_, name)| root.join(name))
+            .collect();
+        if self.touch_points.is_none() {
+            stale.push(touch_file);
+        }
+        for file in stale {
+            if file.is_file() {
+                fs::remove_file(&file).map_err(|e| DatasetError::io(&file, e))?;
+            }
         }
         Ok(())
+    }
+
+    /// The touches of robots `a` and `b` (tips of `a` in `a`'s base first): their
+    /// `touch_points_<a>_<b>.csv`, or `touch_points.csv` when `a` and `b` are the first
+    /// two robots of the manifest, in that order. `None` when the dataset has neither.
+    pub fn touches_between(&self, a: &str, b: &str) -> Option<&[TouchPair]> {
+        let pair = self
+            .pair_touch_points
+            .iter()
+            .find(|((pa, pb), _)| pa == a && pb == b)
+            .map(|(_, pairs)| pairs.as_slice());
+        match self.manifest.robots.as_slice() {
+            [r1, r2, ..] if pair.is_none() && r1.id == a && r2.id == b => {
+                self.touch_points.as_deref()
+            }
+            _ => pair,
+        }
     }
 
     /// The data of robot `id`.
@@ -258,6 +347,36 @@ impl Dataset {
             _ => None,
         }
     }
+}
+
+/// `touch_points.csv` or a pair file, checked with the reader's rules.
+fn render_touches(file: &Path, pairs: &[TouchPair]) -> Result<Vec<u8>, DatasetError> {
+    let with_location = pairs.iter().any(|p| p.location.is_some());
+    let mut rows = Vec::with_capacity(pairs.len());
+    for (i, pair) in pairs.iter().enumerate() {
+        captures::check_touch(file, i + 1, None, pair)?;
+        let mut row = Vec::with_capacity(7);
+        if with_location {
+            match pair.location.as_deref().map(str::trim) {
+                Some(l) if !l.is_empty() => row.push(l.to_owned()),
+                _ => {
+                    return Err(DatasetError::EmptyLocation {
+                        at: Location::cell(file, i + 1, None, LOCATION_COLUMN),
+                    });
+                }
+            }
+        }
+        row.extend(captures::touch_numbers(pair).map(pose::format_number));
+        rows.push(row);
+    }
+    let header: Vec<&str> = if with_location {
+        std::iter::once(LOCATION_COLUMN)
+            .chain(TOUCH_COLUMNS)
+            .collect()
+    } else {
+        TOUCH_COLUMNS.to_vec()
+    };
+    table::render(file, &header, &rows)
 }
 
 /// `path` made absolute without touching the file system beyond the current directory.

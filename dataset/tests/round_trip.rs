@@ -108,6 +108,7 @@ fn dataset(target: Target) -> Dataset {
                 tip2_in_base2: Point3::new(-9.999_999_999_999_998, 2.0 / 7.0, 0.1 + 0.2),
             },
         ]),
+        pair_touch_points: BTreeMap::new(),
     }
 }
 
@@ -139,6 +140,7 @@ fn assert_same(a: &Dataset, b: &Dataset) {
     assert_eq!(a.manifest, b.manifest);
     assert_eq!(a.robots, b.robots);
     assert_eq!(a.touch_points, b.touch_points);
+    assert_eq!(a.pair_touch_points, b.pair_touch_points);
     for (ra, rb) in a.robots.iter().zip(&b.robots) {
         for (ca, cb) in ra.captures.iter().zip(&rb.captures) {
             assert_eq!(bits(&ca.base_from_flange), bits(&cb.base_from_flange));
@@ -175,6 +177,7 @@ fn assert_same(a: &Dataset, b: &Dataset) {
 fn truth() -> GroundTruth {
     GroundTruth {
         base1_from_base2: Some(iso(100.0)),
+        base1_from_base_n: BTreeMap::new(),
         flange_from_camera: BTreeMap::from([
             ("robot1".into(), iso(101.0)),
             ("robot 2".into(), iso(102.0)),
@@ -241,6 +244,7 @@ fn ground_truth_and_reference_round_trip_exactly() {
     let reference = Reference {
         source: "another tool, v1.2".into(),
         base1_from_base2: Some(iso(200.0)),
+        base1_from_base_n: BTreeMap::new(),
         flange_from_camera: BTreeMap::from([("robot1".into(), iso(201.0))]),
         base_from_target: BTreeMap::new(),
     };
@@ -384,4 +388,193 @@ fn rewriting_without_touch_points_removes_the_stale_file() {
     assert!(!tmp.path().join("touch_points.csv").exists());
     create_files(&ds, tmp.path());
     assert_eq!(Dataset::load(tmp.path()).unwrap().touch_points, None);
+}
+
+/// Three robots (one id with `_` and one with a space): a touch file per further pair
+/// and the third robot's base in the truth, all read back bit for bit.
+fn three_robots() -> Dataset {
+    let mut ds = dataset(targets().remove(0));
+    ds.manifest.robots.push(RobotManifest::new("robot_3"));
+    ds.robots.push(RobotData {
+        id: "robot_3".into(),
+        captures: (0..3)
+            .map(|i| Capture {
+                row: i + 1,
+                image: Some(PathBuf::from(format!("images/{i:03}.png"))),
+                depth: None,
+                base_from_flange: iso(50.0 + i as f64),
+                camera_from_target: None,
+            })
+            .collect(),
+    });
+    let touch = |k: f64| TouchPair {
+        location: None,
+        row: 1,
+        tip1_in_base1: Point3::new(0.5 + k / 3.0, -0.1, 0.2),
+        tip2_in_base2: Point3::new(0.3, 0.1 * k, 1.0 / 7.0),
+    };
+    ds.pair_touch_points = BTreeMap::from([
+        (("robot1".into(), "robot_3".into()), vec![touch(1.0)]),
+        (
+            ("robot 2".into(), "robot_3".into()),
+            vec![
+                touch(2.0),
+                TouchPair {
+                    row: 2,
+                    ..touch(3.0)
+                },
+            ],
+        ),
+    ]);
+    ds
+}
+
+#[test]
+fn three_robots_with_pair_touch_files_round_trip_exactly() {
+    let ds = three_robots();
+    let tmp = tempfile::tempdir().unwrap();
+    ds.write(tmp.path()).unwrap_or_else(|e| panic!("{e}"));
+    create_files(&ds, tmp.path());
+    for f in [
+        "touch_points.csv",
+        "touch_points_robot1_robot_3.csv",
+        "touch_points_robot 2_robot_3.csv",
+    ] {
+        assert!(tmp.path().join(f).is_file(), "{f}");
+    }
+    let back = Dataset::load(tmp.path()).unwrap_or_else(|e| panic!("{e}"));
+    assert_same(&ds, &back);
+    for ((a, b), pairs) in &ds.pair_touch_points {
+        let read = back.touches_between(a, b).unwrap();
+        for (p, q) in pairs.iter().zip(read) {
+            assert_eq!(
+                p.tip1_in_base1.coords.map(f64::to_bits),
+                q.tip1_in_base1.coords.map(f64::to_bits)
+            );
+            assert_eq!(
+                p.tip2_in_base2.coords.map(f64::to_bits),
+                q.tip2_in_base2.coords.map(f64::to_bits)
+            );
+        }
+    }
+    // The first two robots' touches are touch_points.csv; other orders have none.
+    assert_eq!(
+        back.touches_between("robot1", "robot 2"),
+        ds.touch_points.as_deref()
+    );
+    assert_eq!(back.touches_between("robot 2", "robot1"), None);
+    assert_eq!(back.touches_between("robot_3", "robot1"), None);
+
+    let mut gt = truth();
+    gt.flange_from_camera.insert("robot_3".into(), iso(104.0));
+    gt.base1_from_base_n.insert(3, iso(105.0));
+    write_ground_truth(tmp.path(), &gt).unwrap();
+    let text = fs::read_to_string(tmp.path().join("ground_truth.json")).unwrap();
+    let b2 = text.find("\"T_base1_base2\"").unwrap();
+    let b3 = text.find("\"T_base1_base3\"").unwrap();
+    let fc = text.find("\"T_flange_camera\"").unwrap();
+    assert!(b2 < b3 && b3 < fc, "{text}");
+    let gt_back = load_ground_truth(tmp.path()).unwrap().unwrap();
+    assert_eq!(gt_back, gt);
+    assert_eq!(
+        bits(&gt_back.base1_from_base(3).unwrap()),
+        bits(&iso(105.0))
+    );
+    assert_eq!(gt_back.base1_from_base(1), Some(Isometry3::identity()));
+    assert_eq!(
+        gt_back.base1_from_base(2).as_ref().map(bits),
+        Some(bits(&iso(100.0)))
+    );
+    let reference = Reference {
+        source: "another tool".into(),
+        base1_from_base_n: BTreeMap::from([(3, iso(106.0))]),
+        ..Reference::default()
+    };
+    write_reference(tmp.path(), &reference).unwrap();
+    assert_eq!(load_reference(tmp.path()).unwrap().unwrap(), reference);
+
+    // Writing what was read gives the same bytes.
+    let tmp2 = tempfile::tempdir().unwrap();
+    back.write(tmp2.path()).unwrap();
+    for f in [
+        "dataset.json",
+        "touch_points_robot1_robot_3.csv",
+        "touch_points_robot 2_robot_3.csv",
+        "robot_3/captures.csv",
+    ] {
+        assert_eq!(
+            fs::read(tmp.path().join(f)).unwrap(),
+            fs::read(tmp2.path().join(f)).unwrap(),
+            "{f}"
+        );
+    }
+
+    // A pair dropped from the dataset loses its file.
+    let mut fewer = ds.clone();
+    fewer
+        .pair_touch_points
+        .remove(&("robot1".to_owned(), "robot_3".to_owned()));
+    fewer.write(tmp.path()).unwrap();
+    assert!(!tmp.path().join("touch_points_robot1_robot_3.csv").exists());
+    assert!(
+        tmp.path()
+            .join("touch_points_robot 2_robot_3.csv")
+            .is_file()
+    );
+    assert_eq!(
+        Dataset::load(tmp.path()).unwrap().pair_touch_points.len(),
+        1
+    );
+}
+
+#[test]
+fn writer_refuses_bad_pair_touch_files_and_base_keys() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut ds = three_robots();
+    ds.pair_touch_points
+        .insert(("robot1".into(), "robot9".into()), vec![]);
+    let e = ds.write(tmp.path()).unwrap_err();
+    assert!(matches!(e, DatasetError::UnknownRobot { .. }), "{e}");
+    assert!(
+        e.to_string().contains("touch_points_robot1_robot9.csv"),
+        "{e}"
+    );
+
+    let mut ds = three_robots();
+    ds.pair_touch_points
+        .insert(("robot1".into(), "robot1".into()), vec![]);
+    assert!(matches!(
+        ds.write(tmp.path()),
+        Err(DatasetError::RobotMismatch { .. })
+    ));
+
+    // `robot1` + `2_x` and `robot1_2` + `x` would both be touch_points_robot1_2_x.csv.
+    let mut ds = three_robots();
+    ds.manifest.robots = ["robot1", "robot1_2", "2_x", "x"]
+        .map(RobotManifest::new)
+        .to_vec();
+    ds.robots = ds
+        .manifest
+        .robots
+        .iter()
+        .map(|r| RobotData {
+            id: r.id.clone(),
+            captures: ds.robots[2].captures.clone(),
+        })
+        .collect();
+    ds.pair_touch_points = BTreeMap::from([(("robot1".into(), "2_x".into()), vec![])]);
+    let e = ds.write(tmp.path()).unwrap_err();
+    assert!(matches!(e, DatasetError::AmbiguousTouchFile { .. }), "{e}");
+    assert!(e.to_string().contains("touch_points_robot1_2_x.csv"), "{e}");
+    assert_eq!(
+        fs::read_dir(tmp.path()).unwrap().count(),
+        0,
+        "nothing is written"
+    );
+
+    let mut gt = truth();
+    gt.base1_from_base_n.insert(2, iso(1.0));
+    let e = write_ground_truth(tmp.path(), &gt).unwrap_err();
+    assert!(matches!(e, DatasetError::UnknownBaseKey { .. }), "{e}");
+    assert!(e.to_string().contains("T_base1_base2"), "{e}");
 }

@@ -584,6 +584,112 @@ fn ground_truth_bad_pose() {
 }
 
 #[test]
+fn ground_truth_bad_base_key() {
+    let fx = Fixture::new();
+    let pose = r#"{"t": [0, 0, 0.1], "q": [0, 0, 0, 1]}"#;
+    for (key, part) in [
+        ("T_base1_baseX", "unknown key `T_base1_baseX`"),
+        ("T_base1_base03", "unknown key `T_base1_base03`"),
+        ("T_base1_base1", "names robot 1"),
+        ("T_base1_base0", "names robot 0"),
+        ("T_base1_base3", "lists 2 robot(s)"),
+    ] {
+        for name in ["ground_truth.json", "reference.json"] {
+            fx.write(name, &format!(r#"{{"source": "x", "{key}": {pose}}}"#));
+            let e = if name == "ground_truth.json" {
+                load_ground_truth(fx.root()).unwrap_err()
+            } else {
+                load_reference(fx.root()).unwrap_err()
+            };
+            assert_message(&e, &fx.path(name), &[&format!("field `{key}`"), part]);
+            assert!(matches!(e, E::UnknownBaseKey { .. }), "{e}");
+        }
+    }
+    // Other keys are still ignored; a further robot's pose is checked like any pose.
+    fx.write("ground_truth.json", r#"{"comment": "from a newer writer"}"#);
+    load_ground_truth(fx.root()).unwrap().unwrap();
+    fx.edit(
+        M,
+        "{ \"id\": \"robot2\" }",
+        "{ \"id\": \"robot2\" }, { \"id\": \"robot3\" }",
+    );
+    fx.write("robot3/captures.csv", CAPTURES1_POSES_ONLY);
+    fx.write(
+        "ground_truth.json",
+        r#"{"T_base1_base3": {"t": [0, 0, 0.1], "q": [0, 0, 0, 2]}}"#,
+    );
+    let e = load_ground_truth(fx.root()).unwrap_err();
+    assert_message(
+        &e,
+        &fx.path("ground_truth.json"),
+        &["field `T_base1_base3.q`"],
+    );
+    assert!(matches!(e, E::NotUnitQuaternion { .. }), "{e}");
+    fx.write(
+        "ground_truth.json",
+        r#"{"T_base1_base3": {"t": [0.5, 1, 0], "q": [0, 0, 0, 1]}}"#,
+    );
+    let gt = load_ground_truth(fx.root()).unwrap().unwrap();
+    assert_eq!(
+        gt.base1_from_base(3).unwrap().translation.vector,
+        nalgebra::Vector3::new(0.5, 1.0, 0.0)
+    );
+    assert_eq!(gt.base1_from_base(2), None);
+}
+
+const CAPTURES1_POSES_ONLY: &str = "image,depth,tx,ty,tz,qx,qy,qz,qw,ctx,cty,ctz,cqx,cqy,cqz,cqw
+,,0.4,0.2,0.5,0,0,0,1,0.01,0.02,0.7,0,0,0,1
+";
+
+#[test]
+fn pair_touch_files_are_checked_like_touch_points() {
+    let fx = Fixture::new();
+    fx.edit(
+        M,
+        "{ \"id\": \"robot2\" }",
+        "{ \"id\": \"robot2\" }, { \"id\": \"robot_3\" }",
+    );
+    fx.write("robot_3/captures.csv", CAPTURES1_POSES_ONLY);
+    let pair = "touch_points_robot2_robot_3.csv";
+    fx.write(pair, "x1,y1,z1,x2,y2,z2\n0.5,0.0,0.1,0.3,-0.2,0.1\n");
+    // A file of robots not in the manifest is not part of the dataset.
+    fx.write("touch_points_robot2_robot9.csv", "not, even, CSV");
+    let ds = fx.load().unwrap();
+    assert_eq!(ds.pair_touch_points.len(), 1);
+    assert_eq!(
+        ds.touches_between("robot2", "robot_3").map(<[_]>::len),
+        Some(1)
+    );
+    assert_eq!(
+        ds.touches_between("robot1", "robot2").map(<[_]>::len),
+        Some(2)
+    );
+    assert_eq!(ds.touches_between("robot_3", "robot2"), None);
+
+    fx.write(pair, "x1,y1,z1,x2,y2,z2\n0.5,0.0,0.1,300,-0.2,0.1\n");
+    let e = fx.load_err(pair, &["row 1 (line 2)", "field `x2`", "millimetres"]);
+    assert!(matches!(e, E::LooksLikeMillimetres { .. }), "{e}");
+
+    // `robot2` + `x_robot_3` and `robot2_x` + `robot_3` share one file name.
+    let fx = Fixture::new();
+    fx.edit(
+        M,
+        "{ \"id\": \"robot2\" }",
+        "{ \"id\": \"robot2\" }, { \"id\": \"x_robot_3\" }, { \"id\": \"robot2_x\" }, { \"id\": \"robot_3\" }",
+    );
+    for id in ["x_robot_3", "robot2_x", "robot_3"] {
+        fx.write(&format!("{id}/captures.csv"), CAPTURES1_POSES_ONLY);
+    }
+    let name = "touch_points_robot2_x_robot_3.csv";
+    fx.write(name, "x1,y1,z1,x2,y2,z2\n");
+    let e = fx.load_err(
+        name,
+        &["`robot2` with `x_robot_3`", "`robot2_x` with `robot_3`"],
+    );
+    assert!(matches!(e, E::AmbiguousTouchFile { .. }), "{e}");
+}
+
+#[test]
 fn reference_needs_source() {
     let fx = Fixture::new();
     fx.write(

@@ -58,7 +58,7 @@ use std::time::Instant;
 
 use b2b_calib::camera::CameraModel;
 use b2b_calib::estimate::{
-    Rejection, RobotCaptures, SplitCheck, estimate_base_to_base, estimate_hand_eye,
+    Rejection, RobotCaptures, SplitCheck, estimate_bases, estimate_hand_eye,
 };
 use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
@@ -144,12 +144,21 @@ pub enum PipelineError {
         /// The method that fits the dataset's target.
         instead: &'static str,
     },
-    /// Base-to-base on a dataset with other than two robots.
+    /// Base-to-base on a dataset with fewer than two robots, or the RGB-D
+    /// method on one with other than two.
     #[error(
-        "{}: base-to-base needs exactly two robots, the manifest lists {robots}",
+        "{}: base-to-base {what}, the manifest lists {robots}",
         manifest.display()
     )]
-    NotTwoRobots { manifest: PathBuf, robots: usize },
+    NotTwoRobots {
+        manifest: PathBuf,
+        robots: usize,
+        /// What the method needs, e.g. `needs at least two robots`.
+        what: &'static str,
+    },
+    /// `verify --pair` for robots the result holds no transform between.
+    #[error("the result holds no transform between robots {a} and {b}: {why}")]
+    NoPair { a: String, b: String, why: String },
     /// A result file (or message) that does not validate.
     #[error("result")]
     InvalidResult {
@@ -272,10 +281,20 @@ fn unknown_robot(ds: &Dataset, robot: &str) -> PipelineError {
     }
 }
 
-fn not_two_robots(ds: &Dataset) -> PipelineError {
+pub(crate) fn not_two_robots(ds: &Dataset) -> PipelineError {
     PipelineError::NotTwoRobots {
         manifest: ds.root.join("dataset.json"),
         robots: ds.manifest.robots.len(),
+        what: "needs at least two robots",
+    }
+}
+
+/// The RGB-D method pairs images of two robots.
+pub(crate) fn rgbd_not_two_robots(ds: &Dataset) -> PipelineError {
+    PipelineError::NotTwoRobots {
+        manifest: ds.root.join("dataset.json"),
+        robots: ds.manifest.robots.len(),
+        what: "by the rgbd method needs exactly two robots (use the board or multimarker method for more)",
     }
 }
 
@@ -1624,22 +1643,29 @@ pub fn base_to_base_run(
             });
         }
     }
-    if ds.manifest.robots.len() != 2 {
+    if ds.manifest.robots.len() < 2 {
         return Err(not_two_robots(ds));
     }
-    let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
-    let obs1 = observe_robot(ds, &ids[0])?;
-    let mut obs2 = observe_robot(ds, &ids[1])?;
+    let mut observed = ds
+        .manifest
+        .robots
+        .iter()
+        .map(|r| observe_robot(ds, &r.id))
+        .collect::<Result<Vec<_>, _>>()?;
     let symmetry = target.symmetry();
     if !symmetry.is_trivial() {
-        align_symmetric_between_robots(&target, &symmetry, &obs1, &mut obs2)?;
+        let (first, others) = observed.split_at_mut(1);
+        for other in others {
+            align_symmetric_between_robots(&target, &symmetry, &first[0], other)?;
+        }
     }
     let board_centre = target.centre();
-    let (mut result, cameras) = joint_base_to_base([&obs1, &obs2], &board_centre, options, method)?;
+    let robots: Vec<&RobotObservations> = observed.iter().collect();
+    let (mut result, cameras) = joint_bases(&robots, &board_centre, options, method)?;
     result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
-    let refined = options_for(options, &[&obs1, &obs2]).refine_intrinsics;
-    let cameras = [&obs1, &obs2]
-        .into_iter()
+    let refined = options_for(options, &robots).refine_intrinsics;
+    let cameras = robots
+        .iter()
         .zip(cameras)
         .map(|(o, camera)| RobotCamera {
             robot: o.robot.clone(),
@@ -1656,7 +1682,7 @@ pub fn base_to_base_run(
     Ok(CalibrationRun {
         result,
         cameras,
-        observations: vec![obs1, obs2],
+        observations: observed,
     })
 }
 
@@ -1668,7 +1694,7 @@ pub fn base_to_base_from_observations(
     board_centre: &Point3<f64>,
     options: &RefineOptions,
 ) -> Result<CalibrationResult, PipelineError> {
-    base_to_base_from_observations_with(robots, board_centre, options, B2bMethod::Board)
+    base_to_base_from_observations_with(&robots, board_centre, options, B2bMethod::Board)
 }
 
 /// [`base_to_base_from_observations`] recording `method` in the result. The board
@@ -1676,94 +1702,144 @@ pub fn base_to_base_from_observations(
 /// observations carry each capture's 3-D target points (board corners, or the
 /// corners of every marker seen, planar or not) and pixels, and the refinement
 /// projects them through `T_camera_target` without assuming a plane.
+///
+/// With more than two robots (the first is the reference) every base is solved
+/// in one problem; see [`CalibrationResult::bases`].
 pub fn base_to_base_from_observations_with(
-    robots: [&RobotObservations; 2],
+    robots: &[&RobotObservations],
     board_centre: &Point3<f64>,
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<CalibrationResult, PipelineError> {
-    joint_base_to_base(robots, board_centre, options, method).map(|(r, _)| r)
+    joint_bases(robots, board_centre, options, method).map(|(r, _)| r)
 }
 
-/// [`base_to_base_from_observations_with`] and both cameras after the joint fit.
+/// Every robot's base in the first robot's, as one problem over all their
+/// observations of one target, and every camera after the joint fit.
 /// Intrinsics estimated from the images are refined in the joint fit
-/// ([`options_for`]); the closed-form seeds use the initial cameras.
-fn joint_base_to_base(
-    robots: [&RobotObservations; 2],
+/// ([`options_for`]); the closed-form seeds use the initial cameras. With more
+/// than two robots the result also holds `reference`, every base and every
+/// pair without the reference.
+fn joint_bases(
+    robots: &[&RobotObservations],
     board_centre: &Point3<f64>,
     options: &RefineOptions,
     method: B2bMethod,
-) -> Result<(CalibrationResult, [CameraModel; 2]), PipelineError> {
-    let options = &options_for(options, &robots);
+) -> Result<(CalibrationResult, Vec<CameraModel>), PipelineError> {
+    let options = &options_for(options, robots);
     if method == B2bMethod::Rgbd {
         return Err(PipelineError::Unsupported(
             "method rgbd needs the images and depth of a dataset (coordinator calibrate --method rgbd); captures on the bus carry neither".into(),
         ));
     }
     let solve_start = Instant::now();
-    let [obs1, obs2] = robots;
-    let (obs1, _) = screen_observations(obs1, &format!("captures of robot {}", obs1.robot))?;
-    let (obs2, _) = screen_observations(obs2, &format!("captures of robot {}", obs2.robot))?;
-    let screened = [&obs1, &obs2];
-    let (obs1, obs2) = (&obs1, &obs2);
-    let inputs = screened.map(|o| {
-        (
-            o.observations
-                .iter()
-                .map(|x| x.board.clone())
-                .collect::<Vec<BoardCapture>>(),
-            o.observations
-                .iter()
-                .map(|x| x.camera_from_target)
-                .collect::<Vec<Iso3>>(),
-        )
-    });
-    let captures = [0, 1].map(|r| RobotCaptures {
-        camera: &screened[r].camera,
-        captures: &inputs[r].0,
-        camera_from_target: &inputs[r].1,
-    });
-    let pair = format!("{}+{}", obs1.robot, obs2.robot);
-    let run = estimate_base_to_base([&captures[0], &captures[1]], options).map_err(calib(&pair))?;
-    if let Some(split) = run.split.filter(SplitCheck::beyond_chance) {
-        warn_systematic("base1_from_base2", &split);
+    let screened = robots
+        .iter()
+        .map(|o| screen_observations(o, &format!("captures of robot {}", o.robot)).map(|s| s.0))
+        .collect::<Result<Vec<_>, _>>()?;
+    let inputs: Vec<(Vec<BoardCapture>, Vec<Iso3>)> = screened
+        .iter()
+        .map(|o| {
+            (
+                o.observations.iter().map(|x| x.board.clone()).collect(),
+                o.observations
+                    .iter()
+                    .map(|x| x.camera_from_target)
+                    .collect(),
+            )
+        })
+        .collect();
+    let captures: Vec<RobotCaptures<'_>> = screened
+        .iter()
+        .zip(&inputs)
+        .map(|(o, (board, poses))| RobotCaptures {
+            camera: &o.camera,
+            captures: board,
+            camera_from_target: poses,
+        })
+        .collect();
+    let ids: Vec<&str> = screened.iter().map(|o| o.robot.as_str()).collect();
+    let all = ids.join("+");
+    let capture_refs: Vec<&RobotCaptures<'_>> = captures.iter().collect();
+    let run = estimate_bases(&capture_refs, options).map_err(calib(&all))?;
+    for (k, split) in run.splits.iter().enumerate() {
+        if let Some(split) = split.filter(SplitCheck::beyond_chance) {
+            let what = if k == 0 {
+                "base1_from_base2".to_owned()
+            } else {
+                format!("the base of {} in {}'s", ids[k + 1], ids[0])
+            };
+            warn_systematic(&what, &split);
+        }
     }
-    let joint = run.estimate;
-    let (mean, p95) = predicted_error(
-        &joint.covariance,
-        &workspace_points(&(joint.base1_from_target * board_centre)),
-        0.0,
-    );
+    let joint = &run.estimate;
+    let centre_in_ref = joint.ref_from_target * board_centre;
+    // The predicted touch error of robot b's base in robot a's, over the
+    // workspace about the target (in a's base).
+    let pair = |a: usize, b: usize| {
+        let (a_from_b, cov) = joint.pair(a, b);
+        let centre = joint.base(a).inverse() * centre_in_ref;
+        let (mean, p95) = predicted_error(&cov, &workspace_points(&centre), 0.0);
+        (a_from_b, cov, PredictedError { mean, p95 })
+    };
+    let (base1_from_base2, covariance, predicted) = pair(0, 1);
+    let n = screened.len();
+    let (bases, pairs) = if n > 2 {
+        let bases = (1..n)
+            .map(|r| {
+                let (t, cov, predicted) = pair(0, r);
+                (
+                    ids[r].to_owned(),
+                    b2b_protocol::BaseResult {
+                        ref_from_base: Pose::from_isometry(&t),
+                        covariance: covariance6(&cov),
+                        predicted_touch_error_m: predicted,
+                    },
+                )
+            })
+            .collect();
+        let pairs = (1..n)
+            .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
+            .map(|(a, b)| {
+                let (t, cov, predicted) = pair(a, b);
+                b2b_protocol::PairResult {
+                    a: ids[a].to_owned(),
+                    b: ids[b].to_owned(),
+                    a_from_b: Pose::from_isometry(&t),
+                    covariance: covariance6(&cov),
+                    predicted_touch_error_m: predicted,
+                }
+            })
+            .collect();
+        (bases, pairs)
+    } else {
+        (Default::default(), Vec::new())
+    };
     let solve_ms = solve_start.elapsed().as_secs_f64() * 1e3;
-    let (used1, mut rejected) = after_fit(obs1, &run.rejections[0]);
-    let (used2, rejected2) = after_fit(obs2, &run.rejections[1]);
-    rejected.extend(rejected2);
-    let detect_ms = obs1.detect_ms + obs2.detect_ms;
+    let mut used = std::collections::BTreeMap::new();
+    let mut rejected = Vec::new();
+    for (o, r) in screened.iter().zip(&run.rejections) {
+        let (count, out) = after_fit(o, r);
+        used.insert(o.robot.clone(), count);
+        rejected.extend(out);
+    }
+    let detect_ms: f64 = screened.iter().map(|o| o.detect_ms).sum();
     let result = CalibrationResult {
         format: RESULT_FORMAT.to_owned(),
         method: method.name().to_owned(),
-        base1_from_base2: Pose::from_isometry(&joint.base1_from_base2),
-        covariance: covariance6(&joint.covariance),
-        predicted_touch_error_m: PredictedError { mean, p95 },
-        hand_eye: [
-            (
-                obs1.robot.clone(),
-                Pose::from_isometry(&joint.flange_from_camera[0]),
-            ),
-            (
-                obs2.robot.clone(),
-                Pose::from_isometry(&joint.flange_from_camera[1]),
-            ),
-        ]
-        .into_iter()
-        .collect(),
+        base1_from_base2: Pose::from_isometry(&base1_from_base2),
+        covariance: covariance6(&covariance),
+        predicted_touch_error_m: predicted,
+        hand_eye: screened
+            .iter()
+            .zip(&joint.flange_from_camera)
+            .map(|(o, x)| (o.robot.clone(), Pose::from_isometry(x)))
+            .collect(),
         captures: CaptureSummary {
-            used: [(obs1.robot.clone(), used1), (obs2.robot.clone(), used2)]
-                .into_iter()
-                .collect(),
+            used,
             rejected,
-            per_capture: [obs1, obs2]
-                .into_iter()
+            per_capture: screened
+                .iter()
                 .zip(&run.rejections)
                 .zip(&joint.per_capture)
                 .flat_map(|((o, r), fit)| capture_fits(o, r, fit))
@@ -1774,8 +1850,17 @@ fn joint_base_to_base(
             solve: solve_ms,
             total: detect_ms + solve_ms,
         },
+        reference: Some(ids[0].to_owned()),
+        bases,
+        pairs,
+        hand_eye_covariance: screened
+            .iter()
+            .zip(&joint.flange_from_camera_covariance)
+            .map(|(o, c)| (o.robot.clone(), covariance6(c)))
+            .collect(),
+        warnings: Vec::new(),
     };
-    Ok((result, joint.cameras))
+    Ok((result, run.estimate.cameras))
 }
 
 /// Each observation with its fit: the RMS of its inlier corners (`None` when it
@@ -1844,26 +1929,127 @@ fn after_fit(
     (used, rejected)
 }
 
-/// Checks a result against touch pairs; `tip_sigma_m` is each pointer's tip noise.
+/// Checks a result against touch pairs of its first two robots; `tip_sigma_m`
+/// is each pointer's tip noise.
 pub fn verify(
     result: &CalibrationResult,
+    touches: &[TouchPair],
+    tip_sigma_m: f64,
+) -> Result<(VerifyReport, TouchMetrics), PipelineError> {
+    verify_pair(result, None, touches, tip_sigma_m)
+}
+
+/// Robot `b`'s base in robot `a`'s as a result gives it, with the covariance of
+/// its left perturbation (in `a`'s base): the first two robots' fields, a base
+/// in `bases`, a pair in `pairs`, or one of those inverted.
+pub fn pair_transform(
+    result: &CalibrationResult,
+    a: &str,
+    b: &str,
+) -> Result<(Iso3, Matrix6<f64>), PipelineError> {
+    let no = |why: String| PipelineError::NoPair {
+        a: a.to_owned(),
+        b: b.to_owned(),
+        why,
+    };
+    let invalid = |source| PipelineError::InvalidResult { source };
+    let robots: Vec<&str> = result.hand_eye.keys().map(String::as_str).collect();
+    for r in [a, b] {
+        if !robots.contains(&r) {
+            return Err(no(format!(
+                "it has no robot '{r}' (its robots: {})",
+                robots.join(", ")
+            )));
+        }
+    }
+    if a == b {
+        return Err(no("a pair needs two different robots".into()));
+    }
+    let Some(reference) = result.reference.as_deref() else {
+        return Err(no(
+            "it does not name its reference robot (written by an older version); \
+             without --pair it checks T_base1_base2"
+                .into(),
+        ));
+    };
+    let cov = |c: &b2b_protocol::Covariance6| Matrix6::from_fn(|i, j| c[i][j]);
+    // `x_from_y` and its covariance, as stored, for the (x, y) the file holds.
+    let stored = |x: &str, y: &str| -> Result<Option<(Iso3, Matrix6<f64>)>, PipelineError> {
+        if x == reference {
+            if let Some(base) = result.bases.get(y) {
+                let t = base
+                    .ref_from_base
+                    .to_isometry(&format!("bases.{y}.T_ref_base"))
+                    .map_err(invalid)?;
+                return Ok(Some((t, cov(&base.covariance))));
+            }
+            if result.bases.is_empty() && robots.len() == 2 {
+                let t = result
+                    .base1_from_base2
+                    .to_isometry("T_base1_base2")
+                    .map_err(invalid)?;
+                return Ok(Some((t, cov(&result.covariance))));
+            }
+            return Ok(None);
+        }
+        for (i, p) in result.pairs.iter().enumerate() {
+            if p.a == x && p.b == y {
+                let t = p
+                    .a_from_b
+                    .to_isometry(&format!("pairs[{i}].T_a_b"))
+                    .map_err(invalid)?;
+                return Ok(Some((t, cov(&p.covariance))));
+            }
+        }
+        Ok(None)
+    };
+    if let Some(found) = stored(a, b)? {
+        return Ok(found);
+    }
+    if let Some((b_from_a, c)) = stored(b, a)? {
+        // T⁻¹ with T' = exp(δ) T: T'⁻¹ = exp(-Ad(T⁻¹) δ) T⁻¹.
+        let a_from_b = b_from_a.inverse();
+        let ad = b2b_calib::pose::adjoint(&a_from_b);
+        let c = ad * c * ad.transpose();
+        return Ok((a_from_b, (c + c.transpose()) * 0.5));
+    }
+    Err(no(format!(
+        "it holds {} (reference {reference})",
+        if result.pairs.is_empty() {
+            "only the bases in the reference's base".to_owned()
+        } else {
+            "the bases and the pairs without the reference, but not this one".to_owned()
+        }
+    )))
+}
+
+/// Checks a result against touch pairs of robots `pair = (a, b)` (columns 1-3
+/// in `a`'s base, 4-6 in `b`'s); `None` checks the first two robots'
+/// `T_base1_base2`.
+pub fn verify_pair(
+    result: &CalibrationResult,
+    pair: Option<(&str, &str)>,
     touches: &[TouchPair],
     tip_sigma_m: f64,
 ) -> Result<(VerifyReport, TouchMetrics), PipelineError> {
     result
         .validate()
         .map_err(|source| PipelineError::InvalidResult { source })?;
-    let base1_from_base2 = result
-        .base1_from_base2
-        .to_isometry("T_base1_base2")
-        .map_err(|source| PipelineError::InvalidResult { source })?;
-    let cov = Matrix6::from_fn(|i, j| result.covariance[i][j]);
+    let (a_from_b, cov) = match pair {
+        Some((a, b)) => pair_transform(result, a, b)?,
+        None => (
+            result
+                .base1_from_base2
+                .to_isometry("T_base1_base2")
+                .map_err(|source| PipelineError::InvalidResult { source })?,
+            Matrix6::from_fn(|i, j| result.covariance[i][j]),
+        ),
+    };
     let pairs: Vec<_> = touches
         .iter()
         .map(|t| (t.tip1_in_base1, t.tip2_in_base2))
         .collect();
-    let m = verify_touches(&base1_from_base2, &cov, &pairs, tip_sigma_m)
-        .map_err(calib("touch points"))?;
+    let m = verify_touches(&a_from_b, &cov, &pairs, tip_sigma_m).map_err(calib("touch points"))?;
     Ok((
         VerifyReport {
             n: m.n,
@@ -1873,7 +2059,7 @@ pub fn verify(
             procrustes_linear_error_mm: m.procrustes_linear_m * 1e3,
             procrustes_angular_error_deg: m.procrustes_angular_rad.to_degrees(),
             within_predicted_p95: m.within_predicted_p95,
-            iso9283: repeated_locations(&base1_from_base2, touches)?,
+            iso9283: repeated_locations(&a_from_b, touches)?,
         },
         m,
     ))

@@ -642,7 +642,7 @@ pub fn rgbd_base_to_base_with_hand_eyes(
 ) -> Result<RgbdRun, PipelineError> {
     let start = Instant::now();
     if ds.manifest.robots.len() != 2 {
-        return Err(crate::not_two_robots(ds));
+        return Err(crate::rgbd_not_two_robots(ds));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let (v1, rej1) = load_views(ds, &ids[0], options)?;
@@ -857,6 +857,11 @@ pub fn rgbd_from_views(
             solve: solve_ms,
             total: start.elapsed().as_secs_f64() * 1e3,
         },
+        reference: Some(ids[0].to_owned()),
+        bases: Default::default(),
+        pairs: Vec::new(),
+        hand_eye_covariance: Default::default(),
+        warnings: Vec::new(),
     };
     Ok(RgbdRun {
         result,
@@ -874,7 +879,7 @@ pub fn rgbd_base_to_base(
 ) -> Result<RgbdRun, PipelineError> {
     let start = Instant::now();
     if ds.manifest.robots.len() != 2 {
-        return Err(crate::not_two_robots(ds));
+        return Err(crate::rgbd_not_two_robots(ds));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let obs1 = observe_robot(ds, &ids[0])?;

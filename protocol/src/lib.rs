@@ -220,6 +220,48 @@ pub struct CalibrationResult {
     pub hand_eye: BTreeMap<String, Pose>,
     pub captures: CaptureSummary,
     pub timings_ms: Timings,
+    /// The robot whose base the others are given in: the first in the
+    /// dataset (`T_base1_base2` is robot 2's base in it). Older files have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference: Option<String>,
+    /// With more than two robots: every other robot's base in the reference's,
+    /// by robot id (the second robot's repeats `T_base1_base2`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub bases: BTreeMap<String, BaseResult>,
+    /// With more than two robots: each pair without the reference, from the
+    /// same joint solve (its covariance includes what the two bases share).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pairs: Vec<PairResult>,
+    /// Robot id to the covariance of its `hand_eye`, as HANDEYE.json's
+    /// `covariance`. Older files and the RGB-D method have none.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub hand_eye_covariance: BTreeMap<String, Covariance6>,
+    /// What an operator must see before trusting the result (for example, a
+    /// hand-eye that no longer matches its cart's history). Empty when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
+}
+
+/// One robot's base in the reference robot's base ([`CalibrationResult::bases`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BaseResult {
+    #[serde(rename = "T_ref_base")]
+    pub ref_from_base: Pose,
+    /// Over the left perturbation `[rx, ry, rz, tx, ty, tz]` of `T_ref_base`.
+    pub covariance: Covariance6,
+    pub predicted_touch_error_m: PredictedError,
+}
+
+/// Robot `b`'s base in robot `a`'s ([`CalibrationResult::pairs`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PairResult {
+    pub a: String,
+    pub b: String,
+    #[serde(rename = "T_a_b")]
+    pub a_from_b: Pose,
+    /// Over the left perturbation of `T_a_b` (in `a`'s base).
+    pub covariance: Covariance6,
+    pub predicted_touch_error_m: PredictedError,
 }
 
 impl CalibrationResult {
@@ -235,6 +277,18 @@ impl CalibrationResult {
         validate_covariance("covariance", &self.covariance)?;
         for (id, p) in &self.hand_eye {
             p.to_isometry(&format!("hand_eye.{id}"))?;
+        }
+        for (id, b) in &self.bases {
+            b.ref_from_base
+                .to_isometry(&format!("bases.{id}.T_ref_base"))?;
+            validate_covariance(&format!("bases.{id}.covariance"), &b.covariance)?;
+        }
+        for (id, c) in &self.hand_eye_covariance {
+            validate_covariance(&format!("hand_eye_covariance.{id}"), c)?;
+        }
+        for (i, p) in self.pairs.iter().enumerate() {
+            p.a_from_b.to_isometry(&format!("pairs[{i}].T_a_b"))?;
+            validate_covariance(&format!("pairs[{i}].covariance"), &p.covariance)?;
         }
         Ok(())
     }

@@ -40,6 +40,11 @@ pub fn result_key() -> String {
     format!("{KEY_ROOT}/coordinator/result")
 }
 
+/// The key the coordinator's drift watch raises alarms on.
+pub fn alarm_key() -> String {
+    format!("{KEY_ROOT}/coordinator/alarm")
+}
+
 /// The coordinator's liveliness token.
 pub fn coordinator_alive_key() -> String {
     format!("{KEY_ROOT}/coordinator/alive")
@@ -384,6 +389,39 @@ pub struct AgentStatus {
 impl Validate for AgentStatus {
     fn validate(&self) -> Result<(), ProtocolError> {
         finite("rotation_diversity_deg", &[self.rotation_diversity_deg])
+    }
+}
+
+/// A drift alarm (`b2b/coordinator/alarm`): a cart's base has moved against
+/// the result it was calibrated with.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DriftAlarm {
+    /// The robot whose base moved against the reference's.
+    pub robot: String,
+    /// The reference robot (the result's first).
+    pub reference: String,
+    /// How far the target moved in the reference base, seen through this
+    /// robot's observations (m).
+    pub shift_m: f64,
+    /// How far it turned (rad).
+    pub turn_rad: f64,
+    /// The alarm came from the first observations against the result (the cart
+    /// moved before the watch began, or the result is off), not from a change
+    /// during the watch.
+    pub against_result: bool,
+    /// The test statistic that crossed its threshold, and the threshold.
+    pub statistic: f64,
+    pub threshold: f64,
+    /// One line for an operator.
+    pub message: String,
+}
+
+impl Validate for DriftAlarm {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        finite(
+            "drift alarm",
+            &[self.shift_m, self.turn_rad, self.statistic, self.threshold],
+        )
     }
 }
 

@@ -12,12 +12,16 @@
 //! | `touch_hist.svg` | distribution of the touch errors with the predicted mean and 95% | per-touch errors |
 //! | `view_sphere.svg` | where the cameras looked from: viewing directions in the target frame on an equal-area projection of the hemisphere | per-capture viewing directions |
 //! | `rejections.svg` | rejected captures counted by reason | any rejection |
+//! | `hand_eye_history_mm.svg`, `hand_eye_history_deg.svg` | each cart's hand-eye over time: how far (mm) and how much turned (deg) from that robot's first recorded hand-eye | the coordinator's history ([`HandEyeHistoryEntry`]) |
+//!
+//! The result's `warnings` (for example a camera mount that moved against the
+//! cart's history) head the page in a red box.
 //!
 //! The inputs are designed to degrade: RESULT.json alone gives the numbers and the
 //! rejection list; `verify --json` adds the touch summary; the hand-eye files
 //! (`per_capture`), the capture messages and verify's per-touch errors add the
-//! plots that need them. A plot without its data is left out and the page says
-//! what would fill it. Everything is deterministic (no clock), so two reports of
+//! plots that need them; the coordinator's history adds the hand-eye plots. A plot
+//! without its data is left out and the page says what would fill it. Everything is deterministic (no clock), so two reports of
 //! the same inputs are byte-identical.
 //!
 //! `report/docs/screenshot.png` is the fixture report of `tests/screenshot.rs` as
@@ -31,7 +35,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use b2b_protocol::messages::Capture;
-use b2b_protocol::{CalibrationResult, HandEyeResult, ProtocolError, VerifyReport};
+use b2b_protocol::{CalibrationResult, HandEyeResult, Pose, ProtocolError, VerifyReport};
 use nalgebra::{UnitQuaternion, Vector3};
 
 pub mod svg;
@@ -134,6 +138,20 @@ pub struct TouchDetail {
     pub bound95_m: f64,
 }
 
+/// One robot's hand-eye as the coordinator's history recorded it. Plain data:
+/// the coordinator reads its database and passes the rows; this crate reads no
+/// database.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HandEyeHistoryEntry {
+    pub robot: String,
+    /// When it was recorded, Unix milliseconds (the plots' time axis).
+    pub recorded_at_unix_ms: i64,
+    /// The same time as people read it, e.g. `2025-06-01 12:00:03 UTC`.
+    pub recorded_at: String,
+    /// `T_flange_camera`.
+    pub flange_from_camera: Pose,
+}
+
 /// Everything a report can show; only `result` is required.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReportInputs {
@@ -145,6 +163,10 @@ pub struct ReportInputs {
     pub verify_source: Option<String>,
     pub captures: Vec<CaptureDetail>,
     pub touches: Vec<TouchDetail>,
+    /// Earlier (and this result's) hand-eyes of its robots, any order.
+    pub hand_eye_history: Vec<HandEyeHistoryEntry>,
+    /// Where the history came from, shown on the page.
+    pub history_source: Option<String>,
 }
 
 fn read_json<T: serde::de::DeserializeOwned>(
@@ -214,6 +236,8 @@ impl ReportInputs {
             verify_source: None,
             captures,
             touches: Vec::new(),
+            hand_eye_history: Vec::new(),
+            history_source: None,
         }
     }
 
@@ -322,6 +346,16 @@ impl ReportInputs {
                     ));
                 }
             }
+        }
+        for h in &self.hand_eye_history {
+            h.flange_from_camera
+                .to_isometry("T_flange_camera")
+                .map_err(|e| {
+                    bad(
+                        format!("hand-eye history of {} at {}", h.robot, h.recorded_at),
+                        e.to_string(),
+                    )
+                })?;
         }
         for t in &self.touches {
             if !(t.error_m.is_finite()
@@ -910,6 +944,145 @@ fn plot_rejections(rejections: &[(String, String, String)], robots: &[String]) -
     Some(svg.finish())
 }
 
+/// One point of a robot's hand-eye over time: the entry, how far (mm) and how
+/// much turned (deg) from that robot's first recorded hand-eye.
+type DriftPoint<'a> = (&'a HandEyeHistoryEntry, f64, f64);
+
+/// Each robot's history, oldest first, as offsets from its first hand-eye
+/// (robots in colour order, then any others by id).
+fn hand_eye_drift<'a>(
+    inputs: &'a ReportInputs,
+    robots: &[String],
+) -> Vec<(String, Vec<DriftPoint<'a>>)> {
+    let mut by_robot: BTreeMap<&str, Vec<&HandEyeHistoryEntry>> = BTreeMap::new();
+    for h in &inputs.hand_eye_history {
+        by_robot.entry(h.robot.as_str()).or_default().push(h);
+    }
+    let mut order: Vec<&str> = robots
+        .iter()
+        .map(String::as_str)
+        .filter(|r| by_robot.contains_key(r))
+        .collect();
+    order.extend(by_robot.keys().filter(|r| !robots.iter().any(|x| x == *r)));
+    order
+        .into_iter()
+        .map(|robot| {
+            let mut entries = by_robot.remove(robot).unwrap_or_default();
+            entries.sort_by_key(|h| h.recorded_at_unix_ms);
+            // validate() has checked every pose.
+            let pose =
+                |h: &HandEyeHistoryEntry| h.flange_from_camera.to_isometry("T_flange_camera").ok();
+            let first = entries.first().and_then(|h| pose(h));
+            let points = entries
+                .iter()
+                .filter_map(|h| {
+                    let (a, b) = (pose(h)?, first?);
+                    let mm = (a.translation.vector - b.translation.vector).norm() * 1e3;
+                    let deg = a.rotation.angle_to(&b.rotation).to_degrees();
+                    Some((*h, mm, deg))
+                })
+                .collect();
+            (robot.to_owned(), points)
+        })
+        .collect()
+}
+
+/// A time axis for Unix-ms instants: (unit name, seconds per unit) so the span
+/// reads in round numbers.
+fn time_unit(span_s: f64) -> (&'static str, f64) {
+    if span_s <= 120.0 {
+        ("seconds", 1.0)
+    } else if span_s <= 2.0 * 3600.0 {
+        ("minutes", 60.0)
+    } else if span_s <= 48.0 * 3600.0 {
+        ("hours", 3600.0)
+    } else {
+        ("days", 86_400.0)
+    }
+}
+
+/// Each robot's hand-eye over record time: translation (`rotation` false, mm)
+/// or rotation (deg) from its first recorded hand-eye.
+fn plot_hand_eye_history(
+    inputs: &ReportInputs,
+    robots: &[String],
+    rotation: bool,
+) -> Option<String> {
+    let drift = hand_eye_drift(inputs, robots);
+    let all: Vec<&DriftPoint<'_>> = drift.iter().flat_map(|(_, p)| p).collect();
+    let earliest = all.iter().min_by_key(|p| p.0.recorded_at_unix_ms)?.0;
+    let latest = all.iter().map(|p| p.0.recorded_at_unix_ms).max()?;
+    let span_s = (latest - earliest.recorded_at_unix_ms) as f64 / 1e3;
+    let (unit, per) = time_unit(span_s);
+    let x_of = |h: &HandEyeHistoryEntry| {
+        (h.recorded_at_unix_ms - earliest.recorded_at_unix_ms) as f64 / 1e3 / per
+    };
+    let value = |p: &DriftPoint<'_>| if rotation { p.2 } else { p.1 };
+    let max_v = all.iter().map(|p| value(p)).fold(0.0, f64::max);
+    let y_max = if max_v > 0.0 {
+        max_v * 1.15
+    } else if rotation {
+        0.01
+    } else {
+        0.1
+    };
+    let mut svg = Svg::new(PLOT_W, PLOT_H);
+    let axes = Axes::new(
+        PLOT_W,
+        PLOT_H,
+        (0.0, (span_s / per).max(1e-9)),
+        (0.0, y_max),
+    );
+    let (title, ylabel, what) = if rotation {
+        (
+            "Hand-eye over time: rotation from the first",
+            "rotation (°)",
+            "°",
+        )
+    } else {
+        (
+            "Hand-eye over time: translation from the first",
+            "translation (mm)",
+            " mm",
+        )
+    };
+    axes.draw(
+        &mut svg,
+        title,
+        &format!("{unit} since {}", earliest.recorded_at),
+        ylabel,
+        false,
+    );
+    for (robot, points) in &drift {
+        let colour = colour_of(robots, robot);
+        let pts: Vec<(f64, f64)> = points
+            .iter()
+            .map(|p| (axes.x(x_of(p.0)), axes.y(value(p))))
+            .collect();
+        svg.polyline(&pts, colour, 1.2);
+        let first = points.first().map_or("", |p| p.0.recorded_at.as_str());
+        for (p, (x, y)) in points.iter().zip(&pts) {
+            let title = format!(
+                "{robot} {}: {:.3}{what} from its first hand-eye ({first})",
+                p.0.recorded_at,
+                value(p)
+            );
+            svg.circle(*x, *y, 4.0, colour, Some(&title));
+        }
+    }
+    let entries: Vec<(String, String)> = drift
+        .iter()
+        .map(|(r, p)| {
+            (
+                colour_of(robots, r).to_owned(),
+                format!("{r} ({})", p.len()),
+            )
+        })
+        .collect();
+    legend(&mut svg, PLOT_W - 16.0, LEGEND_Y, &entries);
+    Some(svg.finish())
+}
+
 fn mm(v: f64) -> String {
     format!("{:.3}", v * 1e3)
 }
@@ -987,6 +1160,44 @@ fn hand_eye_html(inputs: &ReportInputs) -> String {
         );
     }
     h.push_str("</table>");
+    if inputs.hand_eye_history.is_empty() {
+        h.push_str(
+            "<p class=\"small\">No hand-eye history given: <code>coordinator report</code> \
+             plots each cart's hand-eye over time from the coordinator's state folder \
+             (<code>--state-dir</code>).</p>",
+        );
+    } else {
+        let mut robots: Vec<&str> = inputs
+            .hand_eye_history
+            .iter()
+            .map(|e| e.robot.as_str())
+            .collect();
+        robots.sort_unstable();
+        robots.dedup();
+        let _ = write!(
+            h,
+            "<p class=\"small\">History: {} recorded hand-eyes of {}{}; plotted below.</p>",
+            inputs.hand_eye_history.len(),
+            escape(&robots.join(", ")),
+            inputs
+                .history_source
+                .as_ref()
+                .map_or(String::new(), |s| format!(" from {}", escape(s)))
+        );
+    }
+    h
+}
+
+/// The result's warnings, in a red box at the top of the page.
+fn warnings_html(inputs: &ReportInputs) -> String {
+    if inputs.result.warnings.is_empty() {
+        return String::new();
+    }
+    let mut h = String::from("<div class=\"alert\"><h2>Warnings</h2><ul>");
+    for w in &inputs.result.warnings {
+        let _ = write!(h, "<li>{}</li>", escape(w));
+    }
+    h.push_str("</ul></div>\n");
     h
 }
 
@@ -1061,7 +1272,9 @@ h1{font-size:24px;margin:0 0 4px}h2{font-size:18px;margin:0 0 10px}\
 table{border-collapse:collapse;font-size:13px}td,th{border-bottom:1px solid #e4e4e4;padding:3px 10px;text-align:right}\
 td:first-child,th:first-child{text-align:left}table.list td{text-align:left}\
 .small{font-size:12px;color:#555}.ok{color:#1d7a44;font-weight:bold}.warn{color:#b03a2e;font-weight:bold}\
-code{background:#eee;padding:0 3px}";
+code{background:#eee;padding:0 3px}\
+.alert{background:#fdecea;border:2px solid #C0392B;border-radius:6px;padding:10px 14px;margin-bottom:18px;color:#7b1d14}\
+.alert h2{color:#C0392B}.alert li{font-size:15px;font-weight:bold;margin:4px 0}";
 
 fn card(key: &str, value: &str, sub: &str) -> String {
     format!(
@@ -1185,6 +1398,18 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
             plot_rejections(&rejections, &robots),
             "No capture was rejected.",
         ),
+        (
+            "hand_eye_history_mm.svg",
+            "Hand-eye over time: translation",
+            plot_hand_eye_history(inputs, &robots, false),
+            "",
+        ),
+        (
+            "hand_eye_history_deg.svg",
+            "Hand-eye over time: rotation",
+            plot_hand_eye_history(inputs, &robots, true),
+            "",
+        ),
     ];
 
     let mut files = Vec::new();
@@ -1201,8 +1426,9 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
                     escape(heading)
                 );
             }
-            // The rejection list at the bottom already says there were none.
-            None if *name == "rejections.svg" => {}
+            // The rejection list at the bottom already says there were none; the
+            // hand-eye panel says what the history plots need.
+            None if *name == "rejections.svg" || name.starts_with("hand_eye_history") => {}
             None => {
                 let _ = write!(
                     panels,
@@ -1255,6 +1481,10 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
     let sources = [
         inputs.result_source.as_ref().map(|s| format!("result {s}")),
         inputs.verify_source.as_ref().map(|s| format!("verify {s}")),
+        inputs
+            .history_source
+            .as_ref()
+            .map(|s| format!("history {s}")),
     ]
     .into_iter()
     .flatten()
@@ -1265,6 +1495,7 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
          <title>{title}</title><style>{CSS}</style></head><body>\n\
          <h1>{title}</h1><div class=\"src\">{sources}</div>\n\
+         {warnings}\
          <div class=\"cards\">{cards}</div>\n\
          <div class=\"grid\">\n\
          <div class=\"panel\"><h2>base1_from_base2</h2>{numbers}</div>\n\
@@ -1278,6 +1509,7 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
         r.timings_ms.total,
         title = escape(&inputs.title),
         sources = escape(&sources),
+        warnings = warnings_html(inputs),
         numbers = numbers_html(inputs),
         verify = verify_html(inputs),
         hand_eye = hand_eye_html(inputs),

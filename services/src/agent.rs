@@ -518,6 +518,58 @@ fn progress_bar(show: bool, expected: Option<u64>, robot: &str) -> indicatif::Pr
     bar
 }
 
+/// A capture as published: the flange pose, the camera, and the observation
+/// or the reason there is none.
+fn capture_message(cap: &SourceCapture) -> Capture {
+    let (observation, rejected) = match &cap.observed {
+        Ok(o) => (Some(board_observation(o, &cap.target_centre)), None),
+        Err(r) => (None, Some(r.reason.clone())),
+    };
+    Capture {
+        index: cap.index,
+        controller_time_s: cap.controller_time_s,
+        image: cap.image.clone(),
+        base_from_flange: Pose::from_isometry(&cap.base_from_flange),
+        camera: intrinsics(&cap.camera),
+        observation,
+        rejected,
+        base_from_target: None,
+        features: cap.features.clone(),
+    }
+}
+
+/// The key of an agent's drift-watch observations (`b2b/agent/{robot}/watch`):
+/// the same `Capture` message as during calibration, published at the watch's
+/// rate after it.
+pub const WATCH_TOPIC: &str = "watch";
+
+/// `agent watch`: publishes a still frame's observation every `period` from
+/// the watch pose ([`LiveSource::watch`]) until `stop`, each with the next
+/// sequence number of this robot. Returns how many were published.
+pub fn run_watch(
+    bus: &dyn Bus,
+    robot: &str,
+    state_dir: &Path,
+    source: &mut crate::live::LiveSource,
+    period: Duration,
+    stop: &AtomicBool,
+) -> anyhow::Result<u64> {
+    b2b_protocol::messages::validate_robot_id(robot)?;
+    let seq = Sequence::open(state_dir, robot)?;
+    let key = agent_key(robot, WATCH_TOPIC);
+    let mut published = 0u64;
+    source.watch(period, stop, &mut |cap| {
+        if let Err(r) = &cap.observed {
+            tracing::warn!("{robot}: watch frame without the target: {}", r.reason);
+        }
+        let envelope = Envelope::new(robot, seq.take()?, capture_message(&cap));
+        bus::publish(bus, &key, &envelope)?;
+        published += 1;
+        Ok(())
+    })?;
+    Ok(published)
+}
+
 /// Good captures before the status says "enough data" (with the motion checks passed).
 const ENOUGH_CAPTURES: usize = 10;
 
@@ -573,20 +625,9 @@ impl CaptureLoop {
             detect_ms: 0.0,
             estimated_intrinsics: None,
         });
-        let mut msg = Capture {
-            index: cap.index,
-            controller_time_s: cap.controller_time_s,
-            image: cap.image.clone(),
-            base_from_flange: Pose::from_isometry(&cap.base_from_flange),
-            camera: intrinsics(&cap.camera),
-            observation: None,
-            rejected: None,
-            base_from_target: None,
-            features: cap.features.clone(),
-        };
+        let mut msg = capture_message(cap);
         match &cap.observed {
             Ok(o) => {
-                msg.observation = Some(board_observation(o, &cap.target_centre));
                 if let Some(x) = self.flange_from_camera {
                     let t = cap.base_from_flange * x * o.camera_from_target;
                     msg.base_from_target = Some(Pose::from_isometry(&t));
@@ -596,7 +637,6 @@ impl CaptureLoop {
                 self.progress.good_poses.push(cap.base_from_flange);
             }
             Err(r) => {
-                msg.rejected = Some(r.reason.clone());
                 obs.rejected.push(r.clone());
             }
         }

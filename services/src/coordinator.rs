@@ -104,15 +104,27 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
         ids.len(),
         ids
     );
-    let o1 = store.observations(&ids[0])?;
-    let o2 = store.observations(&ids[1])?;
     if opts.method == b2b_pipeline::B2bMethod::Rgbd {
+        anyhow::ensure!(
+            ids.len() == 2,
+            "the rgbd method pairs two robots' images, heard from {}: {:?} (give --robots a,b)",
+            ids.len(),
+            ids
+        );
+        let o1 = store.observations(&ids[0])?;
+        let o2 = store.observations(&ids[1])?;
         return compute_rgbd(store, [&ids[0], &ids[1]], [&o1, &o2], opts);
     }
+    let observations = ids
+        .iter()
+        .map(|id| store.observations(id))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let robots: Vec<&b2b_pipeline::RobotObservations> = observations.iter().collect();
     // The one board centre: the target's, as the agents report it.
-    let centre = store.target_centre(&[&ids[0], &ids[1]])?;
+    let names: Vec<&str> = ids.iter().map(String::as_str).collect();
+    let centre = store.target_centre(&names)?;
     Ok(b2b_pipeline::base_to_base_from_observations_with(
-        [&o1, &o2],
+        &robots,
         &centre,
         &opts.refine,
         opts.method,

@@ -7,6 +7,7 @@
 pub mod agent;
 pub mod bus;
 pub mod coordinator;
+pub mod history;
 pub mod live;
 pub mod outputs;
 pub mod plan;
@@ -14,6 +15,7 @@ pub mod recording;
 pub mod setup;
 pub mod sim_cart;
 pub mod store;
+pub mod watch;
 
 use std::path::Path;
 
@@ -141,6 +143,34 @@ pub fn non_negative(text: &str) -> Result<f64, String> {
     }
 }
 
+/// clap's parser of a number that must be finite and `> 0` (rates, durations).
+pub fn positive(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        Ok(_) => Err(format!("{text} is not a number > 0")),
+        Err(e) => Err(format!("{text}: {e}")),
+    }
+}
+
+/// clap's parser of two different robot ids `a,b` (`verify --pair`).
+pub fn robot_pair(text: &str) -> Result<(String, String), String> {
+    let Some((a, b)) = text.split_once(',') else {
+        return Err(format!(
+            "'{text}' is not two robot ids separated by a comma, e.g. robot1,robot3"
+        ));
+    };
+    let (a, b) = (a.trim(), b.trim());
+    if a.is_empty() || b.is_empty() || b.contains(',') {
+        return Err(format!(
+            "'{text}' is not two robot ids separated by a comma, e.g. robot1,robot3"
+        ));
+    }
+    if a == b {
+        return Err(format!("'{text}': a pair needs two different robots"));
+    }
+    Ok((a.to_owned(), b.to_owned()))
+}
+
 /// A flag set by Ctrl-C (SIGINT/SIGTERM), for loops that stop gracefully.
 pub fn stop_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
     let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -151,11 +181,32 @@ pub fn stop_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
     flag
 }
 
+/// An outcome that is not a failure of the command but must end it with a
+/// documented exit status (`coordinator watch --until-alarm`: 3).
+#[derive(Debug)]
+pub struct ExitStatus {
+    pub code: u8,
+    pub message: String,
+}
+
+impl std::fmt::Display for ExitStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl std::error::Error for ExitStatus {}
+
 /// Runs a command body, printing a one-line reason and exiting non-zero on error
 /// (shared/interfaces.md: never a panic, never a backtrace for bad input).
 pub fn run_main(body: impl FnOnce() -> anyhow::Result<()>) -> std::process::ExitCode {
     match body() {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) if e.downcast_ref::<ExitStatus>().is_some() => {
+            let code = e.downcast_ref::<ExitStatus>().map_or(1, |s| s.code);
+            eprintln!("{e}");
+            std::process::ExitCode::from(code)
+        }
         Err(e) => {
             // `{:#}` prints the chain "a: b: c"; every library message leaves its
             // source out, so each cause appears once.

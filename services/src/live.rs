@@ -369,6 +369,46 @@ impl LiveSource {
     }
 
     /// Plans without moving (`--dry-run`).
+    /// The drift watch during the operation: moves to the first planned
+    /// viewpoint (the board in view by the setup sheet) and stays there; every
+    /// `period` until `stop`, a still frame's observation goes to `deliver`.
+    /// A frame that cannot be had is logged and skipped.
+    pub fn watch(
+        &mut self,
+        period: Duration,
+        stop: &AtomicBool,
+        deliver: &mut dyn FnMut(SourceCapture) -> anyhow::Result<()>,
+    ) -> anyhow::Result<()> {
+        let v = self
+            .plan_only()?
+            .viewpoints
+            .first()
+            .cloned()
+            .context("the plan has no viewpoint to watch from")?;
+        self.move_to(v.q)?;
+        let progress = Progress::default();
+        let mut row = 0usize;
+        while !stop.load(Ordering::SeqCst) {
+            let started = Instant::now();
+            row += 1;
+            match self.still_frame() {
+                Ok((frame, q, t)) => {
+                    let (capture, _) = self.look(&frame, &q, t, row, &progress);
+                    deliver(capture)?;
+                }
+                Err(e) => tracing::warn!("{}: watch: {e:#}", self.cfg.robot),
+            }
+            while started.elapsed() < period && !stop.load(Ordering::SeqCst) {
+                std::thread::sleep(
+                    period
+                        .saturating_sub(started.elapsed())
+                        .min(Duration::from_millis(50)),
+                );
+            }
+        }
+        Ok(())
+    }
+
     pub fn plan_only(&mut self) -> anyhow::Result<&Plan> {
         if let Step::Plan {
             count,

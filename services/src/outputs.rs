@@ -1,7 +1,8 @@
 //! The result in the formats users' tools already read, beside RESULT.json: a
 //! ROS-style YAML transform, an OpenCV FileStorage YAML, a ROS 2 launch file
 //! publishing the fixed base-to-base link (`tf2_ros static_transform_publisher`)
-//! and a URDF with that link as a fixed joint.
+//! and a URDF with that link as a fixed joint. And what the coordinator prints:
+//! results (with their warnings), verification, plans, the history.
 
 use std::path::{Path, PathBuf};
 
@@ -188,15 +189,149 @@ pub fn print_result(r: &CalibrationResult) {
     }
     print_pose("T_base1_base2", &r.base1_from_base2);
     print_sigma(&r.covariance);
-    println!(
-        "predicted touch error: mean {:.3} mm, p95 {:.3} mm",
-        r.predicted_touch_error_m.mean * 1e3,
-        r.predicted_touch_error_m.p95 * 1e3
-    );
+    print_predicted(&r.predicted_touch_error_m);
+    // More than two robots: every other base in the reference's, and the pairs
+    // without it.
+    if let (Some(reference), false) = (&r.reference, r.bases.is_empty()) {
+        for (id, b) in &r.bases {
+            print_pose(&format!("T_{reference}_{id}"), &b.ref_from_base);
+            print_sigma(&b.covariance);
+            print_predicted(&b.predicted_touch_error_m);
+        }
+        for p in &r.pairs {
+            print_pose(&format!("T_{}_{}", p.a, p.b), &p.a_from_b);
+            print_sigma(&p.covariance);
+            print_predicted(&p.predicted_touch_error_m);
+        }
+    }
     println!(
         "timings: detect {:.0} ms, solve {:.0} ms, total {:.0} ms",
         r.timings_ms.detect, r.timings_ms.solve, r.timings_ms.total
     );
+    print_warnings(r);
+}
+
+fn print_predicted(p: &b2b_protocol::PredictedError) {
+    println!(
+        "predicted touch error: mean {:.3} mm, p95 {:.3} mm",
+        p.mean * 1e3,
+        p.p95 * 1e3
+    );
+}
+
+/// The result's warnings, last so an operator sees them (also in RESULT.json
+/// and the report).
+pub fn print_warnings(r: &CalibrationResult) {
+    for w in &r.warnings {
+        println!("WARNING: {w}");
+    }
+}
+
+/// A pose as `t = [x, y, z] mm, rotation vector [a, b, c] deg`.
+fn pose_mm_deg(pose: &b2b_protocol::Pose) -> String {
+    let q = pose.q;
+    let rot = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        q[3], q[0], q[1], q[2],
+    ));
+    let v = rot.scaled_axis();
+    format!(
+        "t = [{:.3}, {:.3}, {:.3}] mm, rotation vector [{:.4}, {:.4}, {:.4}] deg",
+        pose.t[0] * 1e3,
+        pose.t[1] * 1e3,
+        pose.t[2] * 1e3,
+        v.x.to_degrees(),
+        v.y.to_degrees(),
+        v.z.to_degrees()
+    )
+}
+
+/// What `coordinator history` prints: the results, then each robot's hand-eyes
+/// with how far each is from that robot's first. Written to `out` (stdout,
+/// buffered: ten thousand results print at once).
+pub fn write_history(
+    out: &mut impl std::io::Write,
+    listing: &crate::history::Listing,
+) -> std::io::Result<()> {
+    use crate::history::format_utc;
+    let of = listing
+        .robot
+        .as_ref()
+        .map_or(String::new(), |r| format!(" of {r}"));
+    if listing.results.is_empty() && listing.hand_eyes.is_empty() {
+        writeln!(
+            out,
+            "no results or hand-eyes{of} recorded in {} (coordinator calibrate and run record there)",
+            listing.database
+        )?;
+        return Ok(());
+    }
+    writeln!(
+        out,
+        "{}: {} result{}{of}",
+        listing.database,
+        listing.results.len(),
+        if listing.results.len() == 1 { "" } else { "s" }
+    )?;
+    for r in &listing.results {
+        writeln!(
+            out,
+            "#{} {}  {} {}  robots {}",
+            r.id,
+            format_utc(r.recorded_at_unix_ms),
+            r.command,
+            r.method,
+            r.robots.join(", ")
+        )?;
+        let (t, q) = (r.base1_from_base2.t, r.base1_from_base2.q);
+        writeln!(
+            out,
+            "    T_base1_base2 t = [{:.6}, {:.6}, {:.6}] m, q = [{:.8}, {:.8}, {:.8}, {:.8}]; predicted p95 {:.3} mm",
+            t[0],
+            t[1],
+            t[2],
+            q[0],
+            q[1],
+            q[2],
+            q[3],
+            r.predicted_touch_error_m.p95 * 1e3
+        )?;
+        writeln!(out, "    {}", r.result_file)?;
+        for w in &r.warnings {
+            writeln!(out, "    WARNING: {w}")?;
+        }
+    }
+    for (robot, rows) in &listing.hand_eyes {
+        writeln!(out, "hand-eyes of {robot}: {}", rows.len())?;
+        let first = rows
+            .first()
+            .and_then(|h| h.flange_from_camera.to_isometry("T_flange_camera").ok());
+        for h in rows {
+            let from_first = match (first, h.flange_from_camera.to_isometry("T_flange_camera")) {
+                (Some(a), Ok(b)) => {
+                    let (dt, dr) = b2b_calib::pose::pose_distance(&b, &a);
+                    format!(
+                        "; from the first {:.3} mm, {:.3} deg",
+                        dt * 1e3,
+                        dr.to_degrees()
+                    )
+                }
+                _ => String::new(),
+            };
+            writeln!(
+                out,
+                "  {}  #{}  {}{}{from_first}",
+                format_utc(h.recorded_at_unix_ms),
+                h.result_id,
+                pose_mm_deg(&h.flange_from_camera),
+                if h.has_covariance {
+                    ""
+                } else {
+                    " (no covariance)"
+                },
+            )?;
+        }
+    }
+    Ok(())
 }
 
 /// What `agent handeye` prints: the estimate, its captures, sigma, residual and
@@ -334,6 +469,32 @@ pub fn report_inputs(
             .collect();
     }
     Ok(inputs)
+}
+
+/// Adds the hand-eyes the history at `db` holds for the result's robots (none
+/// when the file does not exist).
+pub fn add_history(
+    inputs: &mut b2b_report::ReportInputs,
+    db: &Path,
+) -> Result<(), crate::history::HistoryError> {
+    let Some(history) = crate::history::History::open_existing(db)? else {
+        return Ok(());
+    };
+    let robots: Vec<String> = inputs.result.hand_eye.keys().cloned().collect();
+    for robot in &robots {
+        for h in history.hand_eyes(Some(robot))? {
+            inputs
+                .hand_eye_history
+                .push(b2b_report::HandEyeHistoryEntry {
+                    robot: h.robot,
+                    recorded_at_unix_ms: h.recorded_at_unix_ms,
+                    recorded_at: crate::history::format_utc(h.recorded_at_unix_ms),
+                    flange_from_camera: h.flange_from_camera,
+                });
+        }
+    }
+    inputs.history_source = Some(db.display().to_string());
+    Ok(())
 }
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 //! `--rerun-connect`), what each command logs, and closing them.
 
 use anyhow::Context;
+use b2b_calib::Iso3;
 use b2b_calib::metrics::TouchMetrics;
 use b2b_dataset::Dataset;
 use b2b_pipeline::{RobotObservations, error_chain};
@@ -203,6 +204,7 @@ pub fn log_hand_eye_run(
 pub fn log_verification(
     rec: &b2b_viz::Recorder,
     result: &CalibrationResult,
+    a_from_b: &Iso3,
     touches: &[b2b_dataset::TouchPair],
     metrics: &TouchMetrics,
 ) -> anyhow::Result<()> {
@@ -210,7 +212,7 @@ pub fn log_verification(
         return Ok(());
     }
     log_result(rec, result, None);
-    let b = result.base1_from_base2.to_isometry("T_base1_base2")?;
+    let b = *a_from_b;
     let rows: Vec<b2b_viz::Touch> = touches
         .iter()
         .zip(&metrics.bound95_m)

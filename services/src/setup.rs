@@ -203,6 +203,10 @@ pub struct LiveArgs {
     /// Seed of the simulated cart (its robot errors and sensor noise).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Simulated cart only: a folder the cart watches for commands (a bump of
+    /// its base: `b2b-sim-cart bump --control DIR --robot ID --t-mm x,y,z`).
+    #[arg(long)]
+    pub sim_control: Option<PathBuf>,
     #[command(flatten)]
     pub noise: crate::RobotNoiseArgs,
 }
@@ -246,6 +250,8 @@ pub fn connect(
         Cart::Sim(_) => Some(crate::sim_cart::exe()?),
         Cart::Fri(_) => None,
     };
+    // The folder of a setup derived here, removed with the cart.
+    let mut derived = None;
     let (setup, conn) = match cart {
         Cart::Sim(scene) => {
             let setup = match &live.setup {
@@ -257,7 +263,9 @@ pub fn connect(
                     let dir = std::env::temp_dir()
                         .join(format!("b2b-agent-{}-{robot}", std::process::id()));
                     let exe = cart_exe.as_deref().context("no simulated cart binary")?;
-                    CellSetup::load(&crate::sim_cart::derive_setup(exe, scene, robot, &dir)?)?
+                    let file = crate::sim_cart::derive_setup(exe, scene, robot, &dir);
+                    derived = Some(dir);
+                    CellSetup::load(&file?)?
                 }
             };
             // A unique service root per run, so two simulated cells never mix.
@@ -290,16 +298,20 @@ pub fn connect(
         frames = frames.with_depth(&conn.camera_prefix, robot)?;
     }
     let process = match (cart, &cart_exe) {
-        (Cart::Sim(scene), Some(exe)) => Some(crate::sim_cart::spawn(
-            exe,
-            &crate::sim_cart::CartRun {
-                scene,
-                robot,
-                client: fri.local_addr(),
-                seed: live.seed,
-                camera_prefix: &conn.camera_prefix,
-            },
-        )?),
+        (Cart::Sim(scene), Some(exe)) => Some(
+            crate::sim_cart::spawn(
+                exe,
+                &crate::sim_cart::CartRun {
+                    scene,
+                    robot,
+                    client: fri.local_addr(),
+                    seed: live.seed,
+                    camera_prefix: &conn.camera_prefix,
+                    control: live.sim_control.as_deref(),
+                },
+            )?
+            .owning(derived),
+        ),
         _ => None,
     };
     let source = live_source(&setup, robot, mode, plan, fri, Box::new(frames), features)?;

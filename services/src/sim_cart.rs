@@ -68,16 +68,33 @@ pub struct CartRun<'a> {
     pub seed: u64,
     /// The iceoryx2 service root the camera renders into.
     pub camera_prefix: &'a str,
+    /// A folder the cart watches for commands (`b2b-sim-cart bump`).
+    pub control: Option<&'a Path>,
 }
 
-/// A running simulated cart; killed when dropped.
+/// A running simulated cart; killed when dropped, and the folder of the setup
+/// derived for it (when the agent derived one) removed.
 #[derive(Debug)]
-pub struct CartProcess(std::process::Child);
+pub struct CartProcess {
+    child: std::process::Child,
+    derived_setup: Option<std::path::PathBuf>,
+}
+
+impl CartProcess {
+    /// Removes `dir` (the derived setup and the target's files) with the cart.
+    pub fn owning(mut self, dir: Option<std::path::PathBuf>) -> Self {
+        self.derived_setup = dir;
+        self
+    }
+}
 
 impl Drop for CartProcess {
     fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if let Some(dir) = &self.derived_setup {
+            let _ = std::fs::remove_dir_all(dir);
+        }
     }
 }
 
@@ -90,8 +107,16 @@ pub fn spawn(exe: &Path, run: &CartRun<'_>) -> anyhow::Result<CartProcess> {
         .arg(run.scene)
         .args(["--seed", &run.seed.to_string()])
         .args(["--camera-prefix", run.camera_prefix])
+        .args(
+            run.control
+                .iter()
+                .flat_map(|c| [std::ffi::OsStr::new("--control"), c.as_os_str()]),
+        )
         .stdin(Stdio::null())
         .spawn()
         .with_context(|| format!("cannot start the simulated cart {}", exe.display()))?;
-    Ok(CartProcess(child))
+    Ok(CartProcess {
+        child,
+        derived_setup: None,
+    })
 }

@@ -2,6 +2,9 @@
 //! broken makes `coordinator calibrate` and `agent handeye` exit non-zero, quickly,
 //! with the likely cause named (never a confident wrong number).
 
+mod common;
+use common::state_beside;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -123,7 +126,9 @@ fn both_fail(dir: &Path, words: &[&str], max_s: f64) {
         .args(["calibrate", "--dataset"])
         .arg(dir)
         .arg("--out")
-        .arg(&result);
+        .arg(&result)
+        .arg("--state-dir")
+        .arg(state_beside(&result));
     let mut agent = Command::new(env!("CARGO_BIN_EXE_agent"));
     agent
         .args(["handeye", "--dataset"])

@@ -1,5 +1,8 @@
 //! The binaries as operators use them: exit codes, one-line errors, no panics.
 
+mod common;
+use common::state_beside;
+
 use std::path::Path;
 use std::process::Command;
 
@@ -57,7 +60,9 @@ fn missing_dataset_is_named() {
             .args(["calibrate", "--dataset"])
             .arg(&missing)
             .arg("--out")
-            .arg(tmp.path().join("r.json")),
+            .arg(tmp.path().join("r.json"))
+            .arg("--state-dir")
+            .arg(state_beside(&tmp.path().join("r.json"))),
         "nowhere",
     );
 }
@@ -79,7 +84,9 @@ fn bad_method_is_named() {
             .args(["calibrate", "--dataset"])
             .arg(&ds)
             .args(["--method", "magic", "--out"])
-            .arg(tmp.path().join("r.json")),
+            .arg(tmp.path().join("r.json"))
+            .arg("--state-dir")
+            .arg(state_beside(&tmp.path().join("r.json"))),
         "invalid value 'magic' for '--method <METHOD>'\n  [possible values: board, multimarker, rgbd]",
     );
 }
@@ -104,13 +111,24 @@ fn malformed_result_file_is_named() {
 /// `coordinator calibrate` on the committed checkerboard set into `dir`: the
 /// dataset folder and the RESULT.json written.
 fn calibrate_committed(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
-    let ds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12");
+    let (ds, result, _) = calibrate_bundled(dir, "sim-checkerboard-2x12");
+    (ds, result)
+}
+
+/// `coordinator calibrate` on the committed set `name` into `dir`: the dataset
+/// folder, the RESULT.json written and the printout.
+fn calibrate_bundled(dir: &Path, name: &str) -> (std::path::PathBuf, std::path::PathBuf, String) {
+    let ds = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../datasets")
+        .join(name);
     let result = dir.join("RESULT.json");
     let out = coordinator()
         .args(["calibrate", "--dataset"])
         .arg(&ds)
         .arg("--out")
         .arg(&result)
+        .arg("--state-dir")
+        .arg(state_beside(&result))
         .output()
         .unwrap();
     assert!(
@@ -118,7 +136,11 @@ fn calibrate_committed(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    (ds, result)
+    (
+        ds,
+        result,
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+    )
 }
 
 #[test]
@@ -182,6 +204,95 @@ fn calibrate_then_verify_writes_conforming_files() {
     inputs.validate().unwrap();
 }
 
+/// `coordinator calibrate` on the committed three-robot set: every base in
+/// robot 1's base, the pair without it, and `verify --pair` for each pair
+/// against its own touch file; pairs the result does not hold, and robots it
+/// does not know, are named.
+#[test]
+fn three_robots_calibrate_and_every_pair_verifies() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ds, result, printout) = calibrate_bundled(tmp.path(), "sim-checkerboard-3x12");
+    // Every base and the pair without the reference are printed.
+    for name in ["T_robot1_robot2", "T_robot1_robot3", "T_robot2_robot3"] {
+        assert!(printout.contains(name), "{name}: {printout}");
+    }
+    let r: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    r.validate().unwrap();
+    assert_eq!(r.reference.as_deref(), Some("robot1"));
+    assert_eq!(r.bases.keys().collect::<Vec<_>>(), ["robot2", "robot3"]);
+    // The first two robots' fields are robot 2's base.
+    assert_eq!(r.bases["robot2"].ref_from_base, r.base1_from_base2);
+    assert_eq!(r.bases["robot2"].covariance, r.covariance);
+    assert_eq!(r.hand_eye.len(), 3);
+    // With the touch mean the README gives for each pair (mm).
+    for (pair, file, readme_mm) in [
+        (None, "touch_points.csv", 0.513),
+        (Some("robot1,robot2"), "touch_points.csv", 0.513),
+        (
+            Some("robot1,robot3"),
+            "touch_points_robot1_robot3.csv",
+            0.541,
+        ),
+        (
+            Some("robot2,robot3"),
+            "touch_points_robot2_robot3.csv",
+            0.620,
+        ),
+    ] {
+        // Each touch: tip noise 0.2 mm plus the robot's own positioning error.
+        let mut extra = vec!["--tip-sigma-mm", "0.3"];
+        extra.extend(pair.map(|p| ["--pair", p]).into_iter().flatten());
+        let (_, v) = common::verify(&result, &ds.join(file), &extra);
+        let mean = v["touch_mean_mm"].as_f64().unwrap();
+        let inside = v["within_predicted_p95"].as_f64().unwrap();
+        eprintln!("{pair:?}: touch mean {mean:.3} mm, {inside:.2} within the predicted p95");
+        assert_eq!(v["n"].as_u64(), Some(25), "{pair:?}");
+        // Within 1.5x of the README's figure for this pair.
+        assert!(mean < 1.5 * readme_mm, "{pair:?}: {mean} mm");
+        assert!(inside >= 0.8, "{pair:?}: {inside}");
+    }
+    // The pair turned round: robot 2's touches in robot 3's base.
+    let swapped = tmp.path().join("touch_points_robot3_robot2.csv");
+    let text = std::fs::read_to_string(ds.join("touch_points_robot2_robot3.csv")).unwrap();
+    let mut lines = text.lines();
+    let mut swapped_text = format!("{}\n", lines.next().unwrap());
+    for line in lines {
+        let v: Vec<&str> = line.split(',').collect();
+        let n = v.len();
+        let (head, tips) = v.split_at(n - 6);
+        let row: Vec<&str> = head
+            .iter()
+            .chain(&tips[3..])
+            .chain(&tips[..3])
+            .copied()
+            .collect();
+        swapped_text.push_str(&row.join(","));
+        swapped_text.push('\n');
+    }
+    std::fs::write(&swapped, swapped_text).unwrap();
+    let (_, v) = common::verify(&result, &swapped, &["--pair", "robot3,robot2"]);
+    assert!(v["touch_mean_mm"].as_f64().unwrap() < 0.93, "{v}");
+    fails_cleanly(
+        coordinator()
+            .args(["verify", "--result"])
+            .arg(&result)
+            .arg("--touch-points")
+            .arg(ds.join("touch_points.csv"))
+            .args(["--pair", "robot1,robot9"]),
+        "robot9",
+    );
+    fails_cleanly(
+        coordinator()
+            .args(["verify", "--result"])
+            .arg(&result)
+            .arg("--touch-points")
+            .arg(ds.join("touch_points.csv"))
+            .args(["--pair", "robot1"]),
+        "two robot ids",
+    );
+}
+
 /// `calibrate --method rgbd --hand-eye`: hand-eyes from earlier `agent handeye` runs
 /// replace the dataset's target; the result carries them, and misuse is named.
 #[test]
@@ -214,6 +325,7 @@ fn rgbd_with_hand_eye_files() {
             cmd.arg("--hand-eye").arg(f);
         }
         cmd.arg("--out").arg(&result);
+        cmd.arg("--state-dir").arg(state_beside(&result));
         cmd
     };
     let out = calibrate("rgbd", &[&files[1], &files[0]]).output().unwrap();
@@ -281,6 +393,8 @@ fn calibrate_and_handeye_without_intrinsics() {
         .arg(ds.path())
         .arg("--out")
         .arg(&result)
+        .arg("--state-dir")
+        .arg(state_beside(&result))
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
@@ -302,7 +416,9 @@ fn calibrate_and_handeye_without_intrinsics() {
             .args(["calibrate", "--method", "rgbd", "--dataset"])
             .arg(ds.path())
             .arg("--out")
-            .arg(out_dir.path().join("rgbd.json")),
+            .arg(out_dir.path().join("rgbd.json"))
+            .arg("--state-dir")
+            .arg(state_beside(&out_dir.path().join("rgbd.json"))),
         "no camera intrinsics",
     );
 
@@ -344,6 +460,8 @@ fn logs_to_a_pipe_have_no_colour_codes() {
         .arg(ds.path())
         .arg("--out")
         .arg(ds.path().join("RESULT.json"))
+        .arg("--state-dir")
+        .arg(state_beside(&ds.path().join("RESULT.json")))
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);

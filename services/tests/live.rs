@@ -27,15 +27,12 @@ fn coordinator(net: &Net) -> Child {
 }
 
 fn coordinator_with(net: &Net, method: &str) -> Child {
+    coordinator_of(net, method, "robot1,robot2")
+}
+
+fn coordinator_of(net: &Net, method: &str, robots: &str) -> Child {
     Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args([
-            "run",
-            "--method",
-            method,
-            "--robots",
-            "robot1,robot2",
-            "--zenoh",
-        ])
+        .args(["run", "--method", method, "--robots", robots, "--zenoh"])
         .arg(&net.coordinator_cfg)
         .arg("--state-dir")
         .arg(net.dir.path().join("coordinator-state"))
@@ -108,6 +105,44 @@ fn live_run_over_zenoh_matches_the_offline_calibration() {
     // Both agents' ROS and OpenCV outputs are written beside the result.
     assert!(net.dir.path().join("RESULT.ros.yaml").exists());
     assert!(net.dir.path().join("RESULT.opencv.yml").exists());
+}
+
+/// Three agents, each its own process, and `coordinator run --robots
+/// robot1,robot2,robot3`: every base and every pair as `coordinator calibrate`
+/// gives them offline on the same three-robot dataset.
+#[test]
+fn three_agents_live_match_the_offline_three_robot_calibration() {
+    let net = net();
+    let data = dataset_named("sim-checkerboard-3x12");
+    let mut c = coordinator_of(&net, "board", "robot1,robot2,robot3");
+    let mut agents: Vec<(Child, &str)> = ["robot1", "robot2", "robot3"]
+        .into_iter()
+        .map(|r| (agent_on(&net, &data, r, 0), r))
+        .collect();
+    wait(&mut c, "coordinator", Duration::from_secs(180));
+    for (a, r) in &mut agents {
+        wait(a, &format!("agent {r}"), Duration::from_secs(60));
+    }
+    let live = read_result(&net);
+    let offline = offline_result_of(net.dir.path(), &data, "board");
+    assert_same(&live, &offline);
+    assert_eq!(live.reference.as_deref(), Some("robot1"));
+    assert_eq!(
+        live.bases.keys().collect::<Vec<_>>(),
+        ["robot2", "robot3"],
+        "{live:?}"
+    );
+    for (id, base) in &live.bases {
+        let other = &offline.bases[id];
+        for i in 0..3 {
+            assert!((base.ref_from_base.t[i] - other.ref_from_base.t[i]).abs() < 1e-9);
+        }
+    }
+    assert_eq!(live.pairs.len(), 1);
+    assert_eq!(
+        (live.pairs[0].a.as_str(), live.pairs[0].b.as_str()),
+        ("robot2", "robot3")
+    );
 }
 
 /// The RGB-D method live: each agent detects SIFT features in its colour images,

@@ -3,6 +3,9 @@
 //! offline calibration and a verification, each with `--rerun-save`. The recordings
 //! are read back and must hold the entities the dashboards show.
 
+mod common;
+use common::state_beside;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -75,6 +78,8 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
         .arg(dataset())
         .arg("--out")
         .arg(&result)
+        .arg("--state-dir")
+        .arg(state_beside(&result))
         .arg("--rerun-save")
         .arg(&calib_rrd)
         .output()

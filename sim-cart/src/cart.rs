@@ -10,7 +10,7 @@
 //! wobble; the camera renders from the true flange pose through the true mount.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -53,6 +53,37 @@ pub struct CartOptions {
     pub send_period_ms: u32,
     /// Longest the cart runs without hearing from its client.
     pub idle_timeout: Duration,
+    /// A folder the cart watches for commands ([`bump_file`]).
+    pub control: Option<PathBuf>,
+}
+
+/// The command file that bumps `robot`'s cart: a pose `{"t": [x, y, z],
+/// "rpy_deg": [r, p, y]}` (metres, degrees) by which the cart's base moves, in
+/// its own base frame. The cart applies it at its next frame and renames it
+/// `*.applied`.
+pub fn bump_file(control: &Path, robot: &str) -> PathBuf {
+    control.join(format!("bump-{robot}.json"))
+}
+
+/// Takes a pending bump of `robot`, if any.
+fn take_bump(control: &Path, robot: &str) -> anyhow::Result<Option<Iso3>> {
+    let file = bump_file(control, robot);
+    let text = match std::fs::read_to_string(&file) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", file.display())),
+    };
+    let spec: b2b_sim::scene::PoseSpec = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not a pose {{\"t\": [..], \"rpy_deg\": [..]}}",
+            file.display()
+        )
+    })?;
+    let delta = spec.to_iso(&file, "bump")?;
+    let done = file.with_extension("applied");
+    std::fs::rename(&file, &done)
+        .with_context(|| format!("cannot rename {} to {}", file.display(), done.display()))?;
+    Ok(Some(delta))
 }
 
 fn now_ns() -> u64 {
@@ -80,14 +111,7 @@ pub fn run_cart(
     let renderer = Renderer::new(&scene.camera(r)?)?;
     let camera = scene.reported_camera(r)?;
     let (geometry, _, _) = b2b_sim::generate::scene_geometry(&scene, &opts.scene)?;
-    let base1_from_base2 = scene
-        .base1_from_base2
-        .to_iso(&opts.scene, "base1_from_base2")?;
-    let world_from_base = if r == 0 {
-        Iso3::identity()
-    } else {
-        base1_from_base2
-    };
+    let mut world_from_base = scene.base1_from_base(r, &opts.scene)?;
     let flange_from_camera = spec
         .flange_from_camera
         .to_iso(&opts.scene, &format!("robots[{r}].flange_from_camera"))?;
@@ -133,6 +157,17 @@ pub fn run_cart(
             }
             if !fri.is_running() {
                 break;
+            }
+            if let Some(control) = &opts.control
+                && let Some(delta) = take_bump(control, &opts.robot)?
+            {
+                world_from_base *= delta;
+                tracing::info!(
+                    "cart {}: bumped by {:.2} mm, {:.3} deg",
+                    opts.robot,
+                    delta.translation.vector.norm() * 1e3,
+                    delta.rotation.angle().to_degrees()
+                );
             }
             // Settle: a fresh repeatability wobble every time the arm comes to rest
             // somewhere new.

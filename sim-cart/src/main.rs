@@ -65,6 +65,25 @@ enum Command {
         /// iceoryx2 service root of the camera.
         #[arg(long, default_value = "b2b/camera")]
         camera_prefix: String,
+        /// A folder the cart watches for commands (`bump`).
+        #[arg(long)]
+        control: Option<PathBuf>,
+    },
+    /// Bump a running cart: its base moves by the given offset (in its own base
+    /// frame) at its next frame, as when someone knocks into a wheeled cart.
+    Bump {
+        /// The folder the cart was started with (`run --control`).
+        #[arg(long)]
+        control: PathBuf,
+        /// The robot id of the cart.
+        #[arg(long)]
+        robot: String,
+        /// The shift, mm: x,y,z.
+        #[arg(long, value_delimiter = ',', default_value = "0,0,0")]
+        t_mm: Vec<f64>,
+        /// The turn, degrees: roll,pitch,yaw.
+        #[arg(long, value_delimiter = ',', default_value = "0,0,0")]
+        rpy_deg: Vec<f64>,
     },
 }
 
@@ -88,6 +107,7 @@ fn main() -> std::process::ExitCode {
                 bind,
                 seed,
                 camera_prefix,
+                control,
             } => {
                 b2b_frames::quiet_iceoryx2_logs();
                 let stop = b2b_services::stop_flag();
@@ -108,8 +128,36 @@ fn main() -> std::process::ExitCode {
                     seed,
                     send_period_ms: 5,
                     idle_timeout: Duration::from_secs(5),
+                    control,
                 };
                 cart::run_cart(&opts, &mut sink, &stop)?;
+                Ok(())
+            }
+            Command::Bump {
+                control,
+                robot,
+                t_mm,
+                rpy_deg,
+            } => {
+                b2b_protocol::messages::validate_robot_id(&robot)?;
+                anyhow::ensure!(
+                    t_mm.len() == 3
+                        && rpy_deg.len() == 3
+                        && t_mm.iter().chain(&rpy_deg).all(|v| v.is_finite()),
+                    "--t-mm and --rpy-deg take three finite numbers each, e.g. 1,0,0"
+                );
+                let spec = serde_json::json!({
+                    "t": [t_mm[0] * 1e-3, t_mm[1] * 1e-3, t_mm[2] * 1e-3],
+                    "rpy_deg": rpy_deg,
+                });
+                let file = cart::bump_file(&control, &robot);
+                // Written whole, then renamed, so the cart never reads half a file.
+                let tmp = file.with_extension("tmp");
+                std::fs::write(&tmp, spec.to_string())
+                    .with_context(|| format!("cannot write {}", tmp.display()))?;
+                std::fs::rename(&tmp, &file)
+                    .with_context(|| format!("cannot write {}", file.display()))?;
+                println!("{}", serde_json::json!({ "bump": file }));
                 Ok(())
             }
         }

@@ -28,13 +28,7 @@ pub fn cell_setup(scene_file: &Path, robot: &str, dir: &Path) -> anyhow::Result<
         let path = dir.join(name);
         std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
     }
-    let base1_from_base = if r == 0 {
-        Isometry3::identity()
-    } else {
-        scene
-            .base1_from_base2
-            .to_iso(scene_file, "base1_from_base2")?
-    };
+    let base1_from_base = scene.base1_from_base(r, scene_file)?;
     let off = |t: [f64; 3], axis: [f64; 3], deg: f64| {
         Isometry3::from_parts(
             Translation3::new(t[0], t[1], t[2]),

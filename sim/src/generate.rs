@@ -13,11 +13,17 @@
 //! multimarker target's ARToolKit file is written next to `dataset.json`. Touch pairs: for each point of the shared workspace, both
 //! robots bring a pointer's tip onto it (IK of the true model: the tip physically
 //! touches the point) and the reported tips carry the robots' errors plus tip noise.
+//! With N >= 3 robots every pair `a < b` gets its own touches: the first two robots'
+//! in `touch_points.csv`, the others' in `touch_points_<a>_<b>.csv`; each robot's base
+//! is `T_base1_base<n>` in `ground_truth.json`.
 //!
 //! Determinism: one ChaCha8 generator per purpose (robot realisation, planning,
 //! rendering noise, touches), all seeded from `--seed` by stream number, so the output
-//! is a pure function of the scene file and the seed.
+//! is a pure function of the scene file and the seed. Streams are numbered by robot
+//! (touches: by pair, `(0, 1)` first), so adding a robot leaves the first two robots'
+//! files unchanged.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -58,8 +64,14 @@ pub use b2b_calib::pose::look_at;
 /// What `generate` made, besides the files.
 #[derive(Debug, Clone)]
 pub struct Summary {
+    /// Robot ids, in the scene's order (that of the other per-robot fields).
+    pub robots: Vec<String>,
     pub captures: Vec<usize>,
+    /// Touch pairs of the first two robots (`touch_points.csv`).
     pub touches: usize,
+    /// Touch pairs of every further pair of robots `(a, b)`, `a` before `b` in the
+    /// scene (`touch_points_<a>_<b>.csv`), in the order they were drawn.
+    pub pair_touches: Vec<((String, String), usize)>,
     /// Planning attempts per robot.
     pub attempts: Vec<usize>,
 }
@@ -135,20 +147,25 @@ pub fn generate_scene(
 ) -> Result<Summary, SimError> {
     scene.validate(scene_file)?;
     let (geometry, target, base1_from_target) = scene_geometry(scene, scene_file)?;
-    let base1_from_base2 = scene
-        .base1_from_base2
-        .to_iso(scene_file, "base1_from_base2")?;
-    let world_from_base = [Iso3::identity(), base1_from_base2];
+    let world_from_base = (0..scene.robots.len())
+        .map(|r| scene.base1_from_base(r, scene_file))
+        .collect::<Result<Vec<Iso3>, SimError>>()?;
     let mut truth = GroundTruth {
-        base1_from_base2: Some(base1_from_base2),
+        base1_from_base2: Some(world_from_base[1]),
+        // Robot n (1-based) is robots[n - 1].
+        base1_from_base_n: (3..=world_from_base.len())
+            .map(|n| (n, world_from_base[n - 1]))
+            .collect(),
         ..GroundTruth::default()
     };
     let mut robots_manifest = vec![];
     let mut robots_data = vec![];
     let mut instances = vec![];
     let mut summary = Summary {
+        robots: scene.robots.iter().map(|r| r.id.clone()).collect(),
         captures: vec![],
         touches: 0,
+        pair_touches: vec![],
         attempts: vec![],
     };
     let centre_in_target = target.centre;
@@ -347,14 +364,32 @@ pub fn generate_scene(
         instances.push(robot);
     }
 
-    let touch_points = match &scene.touch_points {
-        Some(spec) => {
-            let pairs = touches(spec, &instances, &world_from_base, seed)?;
-            summary.touches = pairs.len();
-            Some(pairs)
+    let mut touch_points = None;
+    let mut pair_touch_points = BTreeMap::new();
+    if let Some(spec) = &scene.touch_points {
+        // Pair index p in the touch stream's robot field: (0, 1) is p = 0, the stream
+        // of two-robot scenes; the others follow in order (0, 2), ..., (1, 2), ...
+        let n = scene.robots.len();
+        let pairs = (0..n).flat_map(|a| (a + 1..n).map(move |b| (a, b)));
+        for (p, (a, b)) in pairs.enumerate() {
+            let ids = [scene.robots[a].id.as_str(), scene.robots[b].id.as_str()];
+            let made = touches(
+                spec,
+                [&instances[a], &instances[b]],
+                [world_from_base[a], world_from_base[b]],
+                ids,
+                stream(seed, 4, p, 0),
+            )?;
+            if p == 0 {
+                summary.touches = made.len();
+                touch_points = Some(made);
+            } else {
+                let key = (ids[0].to_owned(), ids[1].to_owned());
+                summary.pair_touches.push((key.clone(), made.len()));
+                pair_touch_points.insert(key, made);
+            }
         }
-        None => None,
-    };
+    }
     let mut manifest = Manifest::new(scene.name.clone(), target.manifest.clone(), robots_manifest);
     let scene_name = scene_file
         .file_name()
@@ -369,6 +404,7 @@ pub fn generate_scene(
         manifest,
         robots: robots_data,
         touch_points,
+        pair_touch_points,
     };
     for (rel, text) in &target.files {
         let file = out.join(rel);
@@ -382,13 +418,15 @@ pub fn generate_scene(
     Ok(summary)
 }
 
+/// Touches of one pair of robots, drawn from `rng`: `tip1_in_base1` is the first
+/// robot's reported tip in its base, `tip2_in_base2` the second's.
 fn touches(
     spec: &crate::scene::TouchSpec,
-    robots: &[RobotInstance],
-    world_from_base: &[Iso3; 2],
-    seed: u64,
+    robots: [&RobotInstance; 2],
+    world_from_base: [Iso3; 2],
+    ids: [&str; 2],
+    mut rng: Rng,
 ) -> Result<Vec<TouchPair>, SimError> {
-    let mut rng = stream(seed, 4, 0, 0);
     let tool = Iso3::translation(0.0, 0.0, spec.tool_length_m);
     let mut out = vec![];
     let mut attempts = 0;
@@ -397,7 +435,7 @@ fn touches(
         attempts += 1;
         if attempts > max_attempts {
             return Err(SimError::PlanningFailed {
-                what: "touch points reachable by both robots".into(),
+                what: format!("touch points reachable by both {} and {}", ids[0], ids[1]),
                 found: out.len(),
                 wanted: spec.count,
                 attempts: max_attempts,

@@ -1,5 +1,5 @@
-//! The simulator: two iiwa carts, a physically rendered camera on each flange, and the
-//! ground truth every accuracy claim of the project is measured against.
+//! The simulator: two or more iiwa carts, a physically rendered camera on each flange, and
+//! the ground truth every accuracy claim of the project is measured against.
 //!
 //! Without hardware, the simulator is where accuracy is measured, so it is built to be
 //! physically honest, and the truth never leaks into what the pipeline sees:

@@ -192,6 +192,11 @@ pub struct RobotSpec {
     pub flange_from_camera: PoseSpec,
     #[serde(default)]
     pub error: RobotErrorModel,
+    /// `T_base1_base` of this robot: required for the third robot on (`robots[2..]`),
+    /// refused on the first two (robot 1's base is `base1`, robot 2's is the scene's
+    /// `base1_from_base2`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub base1_from_base: Option<PoseSpec>,
 }
 
 /// Where to look from.
@@ -305,7 +310,8 @@ pub struct Scene {
     pub target: Option<TargetSpec>,
     /// `T_base1_base2`.
     pub base1_from_base2: PoseSpec,
-    /// Exactly two robots (robot 1 defines `base1`).
+    /// Two or more robots with distinct ids (robot 1 defines `base1`; from the third on,
+    /// each gives its own [`RobotSpec::base1_from_base`]).
     pub robots: Vec<RobotSpec>,
     pub viewpoints: ViewpointSpec,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -375,14 +381,51 @@ impl Scene {
             field: field.to_owned(),
             reason,
         };
-        if self.robots.len() != 2 {
+        if self.robots.len() < 2 {
             return Err(bad(
                 "robots",
-                format!("exactly two robots are needed, found {}", self.robots.len()),
+                format!(
+                    "at least two robots are needed, found {}",
+                    self.robots.len()
+                ),
             ));
         }
-        if self.robots[0].id == self.robots[1].id {
-            return Err(bad("robots[1].id", "robot ids must differ".into()));
+        for (k, r) in self.robots.iter().enumerate() {
+            if let Some(first) = self.robots[..k].iter().position(|o| o.id == r.id) {
+                return Err(bad(
+                    &format!("robots[{k}].id"),
+                    format!(
+                        "robot ids must differ: `{}` is also robots[{first}].id",
+                        r.id
+                    ),
+                ));
+            }
+            let field = format!("robots[{k}].base1_from_base");
+            match (k, &r.base1_from_base) {
+                (0, Some(_)) => {
+                    return Err(bad(
+                        &field,
+                        "the first robot's base is base1 itself; leave it out".into(),
+                    ));
+                }
+                (1, Some(_)) => {
+                    return Err(bad(
+                        &field,
+                        "the second robot's base is the scene's `base1_from_base2`; leave it out"
+                            .into(),
+                    ));
+                }
+                (0 | 1, None) => {}
+                (_, None) => {
+                    return Err(bad(
+                        &field,
+                        "required from the third robot on: where its base stands in base1".into(),
+                    ));
+                }
+                (_, Some(pose)) => {
+                    pose.to_iso(file, &field)?;
+                }
+            }
         }
         match (&self.board, &self.target) {
             (Some(b), None) => Self::validate_board(b, file)?,
@@ -670,6 +713,27 @@ impl Scene {
         }
     }
 
+    /// `T_base1_base` of robot `i` (0-based, the order of `robots`): the identity for
+    /// the first, `base1_from_base2` for the second, its own `base1_from_base` for the
+    /// others.
+    pub fn base1_from_base(&self, i: usize, file: &Path) -> Result<Iso3, SimError> {
+        match i {
+            0 => Ok(Iso3::identity()),
+            1 => self.base1_from_base2.to_iso(file, "base1_from_base2"),
+            _ => {
+                let field = format!("robots[{i}].base1_from_base");
+                match self.robots.get(i).and_then(|r| r.base1_from_base.as_ref()) {
+                    Some(pose) => pose.to_iso(file, &field),
+                    None => Err(SimError::SceneValue {
+                        file: file.to_owned(),
+                        field,
+                        reason: format!("missing (the scene has {} robots)", self.robots.len()),
+                    }),
+                }
+            }
+        }
+    }
+
     /// Robot `i`'s camera model.
     pub fn camera(&self, i: usize) -> Result<b2b_calib::camera::CameraModel, SimError> {
         camera_model(&self.robots[i].camera)
@@ -729,6 +793,63 @@ mod tests {
     #[test]
     fn the_committed_scene_parses() {
         Scene::parse(&example(), Path::new("scene.json")).unwrap();
+    }
+
+    /// The example with a third robot, a copy of the first with the base `base` (JSON).
+    fn three_robots(base: Option<&str>) -> Scene {
+        let mut scene = Scene::parse(&example(), Path::new("scene.json")).unwrap();
+        let mut third = scene.robots[0].clone();
+        third.id = "robot3".into();
+        third.base1_from_base = base.map(|t| serde_json::from_str(t).unwrap());
+        scene.robots.push(third);
+        scene
+    }
+
+    #[test]
+    fn a_third_robot_needs_its_base_and_only_it() {
+        let file = Path::new("s.json");
+        let scene = three_robots(Some(r#"{"t": [0.5, -0.9, 0.0], "rpy_deg": [0, 0, 90]}"#));
+        scene.validate(file).unwrap();
+        let b3 = scene.base1_from_base(2, file).unwrap();
+        assert!((b3.translation.vector.y + 0.9).abs() < 1e-12);
+        assert_eq!(scene.base1_from_base(0, file).unwrap(), Iso3::identity());
+        assert_eq!(
+            scene.base1_from_base(1, file).unwrap(),
+            scene.base1_from_base2.to_iso(file, "").unwrap()
+        );
+        // It round-trips through JSON, and a two-robot scene writes no such field.
+        let text = serde_json::to_string(&scene).unwrap();
+        assert_eq!(Scene::parse(&text, file).unwrap(), scene);
+        let two = serde_json::to_string(&Scene::parse(&example(), file).unwrap()).unwrap();
+        assert!(!two.contains("\"base1_from_base\""), "{two}");
+
+        let e = three_robots(None).validate(file).unwrap_err().to_string();
+        assert!(
+            e.contains("s.json")
+                && e.contains("robots[2].base1_from_base")
+                && e.contains("required"),
+            "{e}"
+        );
+        for k in [0, 1] {
+            let mut scene = three_robots(Some(r#"{"t": [0.5, -0.9, 0.0]}"#));
+            scene.robots[k].base1_from_base = scene.robots[2].base1_from_base.clone();
+            let e = scene.validate(file).unwrap_err().to_string();
+            assert!(e.contains(&format!("robots[{k}].base1_from_base")), "{e}");
+        }
+        let mut scene = three_robots(Some(r#"{"t": [0.5, -0.9, 0.0]}"#));
+        scene.robots[2].id = "robot2".into();
+        let e = scene.validate(file).unwrap_err().to_string();
+        assert!(
+            e.contains("robots[2].id") && e.contains("robots[1].id"),
+            "{e}"
+        );
+        let mut scene = three_robots(Some(r#"{"t": [500, -0.9, 0.0]}"#));
+        scene.robots.truncate(3);
+        let e = scene.validate(file).unwrap_err().to_string();
+        assert!(e.contains("robots[2].base1_from_base"), "{e}");
+        scene.robots.truncate(1);
+        let e = scene.validate(file).unwrap_err().to_string();
+        assert!(e.contains("at least two robots"), "{e}");
     }
 
     #[test]

@@ -10,9 +10,11 @@ mod common;
 
 use std::path::Path;
 
-use b2b_dataset::Target;
+use b2b_calib::camera::CameraModel;
+use b2b_dataset::{Target, load_ground_truth};
 use b2b_sim::generate::{GenerateOptions, generate_scene};
 use b2b_sim::scene::Scene;
+use b2b_vision::{CheckerboardSpec, detect_checkerboard};
 use common::{datasets_dir, files, regenerate};
 
 /// The budget for everything under `datasets/`.
@@ -22,6 +24,134 @@ const MAX_TOTAL_BYTES: u64 = 25_000_000;
 fn checkerboard_set_regenerates() {
     let ds = regenerate("sim-checkerboard-2x12");
     assert!(matches!(ds.manifest.target, Target::Checkerboard { .. }));
+}
+
+/// Three carts: every pair of robots has its touches, the third base is in the truth,
+/// and the truth agrees with the data (touches meet in `base1`, the board is detected
+/// where the reported poses and the true hand-eye and board put it).
+#[test]
+fn three_robot_checkerboard_set_regenerates() {
+    let ds = regenerate("sim-checkerboard-3x12");
+    assert!(matches!(ds.manifest.target, Target::Checkerboard { .. }));
+    let ids: Vec<&str> = ds.robots.iter().map(|r| r.id.as_str()).collect();
+    assert_eq!(ids, ["robot1", "robot2", "robot3"]);
+    assert!(ds.robots.iter().all(|r| r.captures.len() == 12));
+    let pairs: Vec<(&str, &str)> = ds
+        .pair_touch_points
+        .keys()
+        .map(|(a, b)| (a.as_str(), b.as_str()))
+        .collect();
+    assert_eq!(pairs, [("robot1", "robot3"), ("robot2", "robot3")]);
+    for f in [
+        "touch_points_robot1_robot3.csv",
+        "touch_points_robot2_robot3.csv",
+    ] {
+        assert!(
+            datasets_dir()
+                .join("sim-checkerboard-3x12")
+                .join(f)
+                .is_file()
+        );
+    }
+    let truth = load_ground_truth(&datasets_dir().join("sim-checkerboard-3x12"))
+        .unwrap()
+        .unwrap();
+    let scene = Scene::load(&datasets_dir().join("sim-checkerboard-3x12/scene.json")).unwrap();
+    let base1_from_base3 = truth.base1_from_base_n[&3];
+    assert_eq!(
+        base1_from_base3,
+        scene.base1_from_base(2, Path::new("scene.json")).unwrap()
+    );
+    // About 1 m from each of the other two carts.
+    for k in [1, 2] {
+        let d = (base1_from_base3.translation.vector
+            - truth.base1_from_base(k).unwrap().translation.vector)
+            .norm();
+        assert!((0.9..1.15).contains(&d), "robot3 to robot{k}: {d} m");
+    }
+
+    // Each pair's touches are one physical point: within robot error, tip noise and
+    // repeatability (a few tenths of a millimetre) in base1.
+    for (a, b) in [(0, 1), (0, 2), (1, 2)] {
+        let touches = ds.touches_between(ids[a], ids[b]).unwrap();
+        assert_eq!(touches.len(), 25, "{a} {b}");
+        let (base1_from_a, base1_from_b) = (
+            truth.base1_from_base(a + 1).unwrap(),
+            truth.base1_from_base(b + 1).unwrap(),
+        );
+        for t in touches {
+            let gap = (base1_from_a * t.tip1_in_base1 - base1_from_b * t.tip2_in_base2).norm();
+            assert!(
+                gap < 2e-3,
+                "{} + {}: row {}: {gap} m",
+                ids[a],
+                ids[b],
+                t.row
+            );
+        }
+    }
+
+    // Every image shows the whole board where the truth says it is.
+    let spec = CheckerboardSpec {
+        cols: 9,
+        rows: 6,
+        square_m: 0.025,
+    };
+    for (r, robot) in ds.robots.iter().enumerate() {
+        let c = ds.manifest.robots[r].camera.clone().unwrap();
+        let camera =
+            CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist).unwrap();
+        let flange_from_camera = truth.flange_from_camera[&robot.id];
+        let base_from_target = truth.base_from_target[&robot.id];
+        for cap in &robot.captures {
+            let image = ds.image_path(&robot.id, cap).unwrap();
+            let det = detect_checkerboard(&b2b_vision::load_gray(&image).unwrap(), &spec)
+                .unwrap_or_else(|e| panic!("{}: {e}", image.display()));
+            assert_eq!(det.pixels.len(), 54, "{}", image.display());
+            let camera_from_target =
+                (cap.base_from_flange * flange_from_camera).inverse() * base_from_target;
+            let worst = det
+                .target_points
+                .iter()
+                .zip(&det.pixels)
+                .map(|(p, uv)| (camera.project(&(camera_from_target * p)).unwrap() - uv).norm())
+                .fold(0.0, f64::max);
+            assert!(worst < 3.0, "{}: {worst} px", image.display());
+        }
+    }
+}
+
+/// A pair of robots that cannot both reach the touch region is named in the error.
+#[test]
+fn unreachable_touches_name_the_pair() {
+    let mut scene = Scene::load(&datasets_dir().join("sim-checkerboard-3x12/scene.json")).unwrap();
+    for r in &mut scene.robots {
+        r.camera.width = 80;
+        r.camera.height = 60;
+        r.camera.fx /= 4.0;
+        r.camera.fy /= 4.0;
+        r.camera.cx /= 4.0;
+        r.camera.cy /= 4.0;
+    }
+    scene.viewpoints.count = 1;
+    scene.viewpoints.min_margin_px = 2.0;
+    // Between robot1 and robot2 on the far side of the board: 1.2 m from robot3.
+    let touch = scene.touch_points.as_mut().unwrap();
+    touch.count = 1;
+    touch.region_min = [0.48, 0.3, 0.1];
+    touch.region_max = [0.52, 0.34, 0.15];
+    let tmp = tempfile::tempdir().unwrap();
+    let e = generate_scene(
+        &scene,
+        Path::new("far.json"),
+        1,
+        tmp.path(),
+        &GenerateOptions::default(),
+    )
+    .unwrap_err();
+    assert!(matches!(e, b2b_sim::SimError::PlanningFailed { .. }), "{e}");
+    let msg = e.to_string();
+    assert!(msg.contains("robot1 and robot3"), "{msg}");
 }
 
 #[test]
@@ -104,6 +234,7 @@ fn every_committed_folder_is_tested_and_all_fit_in_25_mb() {
         "sim-aruco-grid-2x5",
         "sim-charuco-occluded-2x10",
         "sim-checkerboard-2x12",
+        "sim-checkerboard-3x12",
         "sim-lighting-3lux-2x3",
         "sim-multimarker-4x3-2x10",
         "sim-multimarker-corner-2x10",

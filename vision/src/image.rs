@@ -175,6 +175,46 @@ pub fn header_size(bytes: &[u8]) -> Option<(u32, u32)> {
     None
 }
 
+/// For a PNG: that its chunks chain from the signature to `IEND` inside the
+/// bytes, with image data on the way (lengths only; nothing is decompressed).
+/// A file cut short is refused here, with where it ends, rather than by libpng,
+/// which would also print its own line on stderr. Other formats pass.
+pub fn png_chunks_complete(bytes: &[u8]) -> Result<(), String> {
+    const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
+    if bytes.len() < 8 || bytes[..8] != PNG_SIGNATURE {
+        return Ok(());
+    }
+    let mut k = 8usize;
+    let mut image_data = false;
+    loop {
+        if k + 8 > bytes.len() {
+            return Err(format!(
+                "the PNG is cut short: it ends at byte {} without its IEND chunk",
+                bytes.len()
+            ));
+        }
+        let len = u32::from_be_bytes([bytes[k], bytes[k + 1], bytes[k + 2], bytes[k + 3]]) as usize;
+        let kind = &bytes[k + 4..k + 8];
+        let end = k.saturating_add(12).saturating_add(len);
+        if end > bytes.len() {
+            return Err(format!(
+                "the PNG is cut short: its {} chunk at byte {k} needs {len} bytes of data, the file ends at byte {}",
+                String::from_utf8_lossy(kind),
+                bytes.len()
+            ));
+        }
+        match kind {
+            b"IDAT" => image_data = true,
+            b"IEND" if !image_data => {
+                return Err("the PNG has no image data (IDAT) before its end".into());
+            }
+            b"IEND" => return Ok(()),
+            _ => {}
+        }
+        k = end;
+    }
+}
+
 /// The size an image file's header states (see [`header_size`]), reading at most
 /// its first 256 KiB; `None` when the header is not PNG or JPEG or not found there.
 pub fn image_file_size(path: &Path) -> Result<Option<(u32, u32)>, VisionError> {
@@ -272,6 +312,9 @@ pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionE
     if let Some(size) = header_size(bytes) {
         check_stated_size(source_name, size, None)?;
     }
+    if let Err(reason) = png_chunks_complete(bytes) {
+        return Err(corrupt(&reason));
+    }
     let buf = Vector::<u8>::from_slice(bytes);
     // OpenCV's decoders report failure as an empty Mat, or sometimes throw.
     let mat = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_UNCHANGED)
@@ -339,5 +382,38 @@ mod header_tests {
         let err = decode_gray(&png, "huge.png").unwrap_err();
         assert!(matches!(err, VisionError::ImageTooLarge { .. }), "{err:?}");
         assert!(err.to_string().contains("32000x24000"), "{err}");
+    }
+
+    #[test]
+    fn a_png_cut_short_is_named_before_decoding() {
+        let mut png = Vec::new();
+        png.extend_from_slice(&[0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A]);
+        let chunk = |png: &mut Vec<u8>, kind: &[u8], data: &[u8]| {
+            png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+            png.extend_from_slice(kind);
+            png.extend_from_slice(data);
+            png.extend_from_slice(&[0; 4]);
+        };
+        // 64 x 48, 8-bit grey.
+        let mut ihdr = [0u8; 13];
+        ihdr[..4].copy_from_slice(&64u32.to_be_bytes());
+        ihdr[4..8].copy_from_slice(&48u32.to_be_bytes());
+        ihdr[8] = 8;
+        chunk(&mut png, b"IHDR", &ihdr);
+        chunk(&mut png, b"IDAT", &[0; 100]);
+        chunk(&mut png, b"IEND", &[]);
+        assert_eq!(png_chunks_complete(&png), Ok(()));
+        let cut = &png[..png.len() - 60];
+        let e = png_chunks_complete(cut).unwrap_err();
+        assert!(e.contains("cut short") && e.contains("IDAT"), "{e}");
+        let e = png_chunks_complete(&png[..png.len() - 12]).unwrap_err();
+        assert!(e.contains("without its IEND"), "{e}");
+        let err = decode_gray(cut, "cut.png").unwrap_err().to_string();
+        assert!(
+            err.contains("cut.png") && err.contains("cut short"),
+            "{err}"
+        );
+        // Not a PNG: left to the decoders.
+        assert_eq!(png_chunks_complete(b"JFIF..."), Ok(()));
     }
 }

@@ -523,6 +523,45 @@ impl Recorder {
         Ok(())
     }
 
+    /// The drift watch of one robot (`coordinator watch`): the observation's
+    /// test statistic `z` and the CUSUM after it, at `unix_time_s`, under
+    /// `watch/ROBOT/z` and `watch/ROBOT/cusum`.
+    pub fn log_watch(
+        &self,
+        robot: &str,
+        unix_time_s: f64,
+        z: f64,
+        cusum: f64,
+    ) -> Result<(), VizError> {
+        if !(z.is_finite() && cusum.is_finite()) {
+            return Err(input("watch", format!("z {z}, CUSUM {cusum}: not finite")));
+        }
+        if unix_time_s.is_finite() {
+            self.rec
+                .set_timestamp_secs_since_epoch(TIMELINE_TIME, unix_time_s);
+        }
+        self.rec
+            .log(format!("watch/{robot}/z"), &rerun::Scalars::single(z))?;
+        self.rec.log(
+            format!("watch/{robot}/cusum"),
+            &rerun::Scalars::single(cusum),
+        )?;
+        Ok(())
+    }
+
+    /// A drift alarm in `watch/alarms` (text log, ERROR).
+    pub fn log_alarm(&self, unix_time_s: f64, text: &str) -> Result<(), VizError> {
+        if unix_time_s.is_finite() {
+            self.rec
+                .set_timestamp_secs_since_epoch(TIMELINE_TIME, unix_time_s);
+        }
+        self.rec.log(
+            "watch/alarms",
+            &rerun::TextLog::new(text.to_owned()).with_level(rerun::TextLogLevel::ERROR),
+        )?;
+        Ok(())
+    }
+
     /// A line in a base's text log (INFO).
     pub fn log_text(&self, base: Base, text: &str) -> Result<(), VizError> {
         self.rec.log(

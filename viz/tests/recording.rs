@@ -101,6 +101,11 @@ fn result() -> CalibrationResult {
             per_capture: Vec::new(),
         },
         timings_ms: Timings::default(),
+        reference: Some("robot1".into()),
+        bases: Default::default(),
+        pairs: Vec::new(),
+        hand_eye_covariance: Default::default(),
+        warnings: Vec::new(),
     }
 }
 

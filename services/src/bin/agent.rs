@@ -12,11 +12,11 @@ use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::{HandEyeChoice, RobotCamera, hand_eye, load_dataset, observe_robot};
 use b2b_routine::{Mode, RoutineConfig};
-use b2b_services::agent::{AgentOptions, BusArgs, run_agent, run_replay};
+use b2b_services::agent::{AgentOptions, BusArgs, run_agent, run_replay, run_watch};
 use b2b_services::outputs::{print_agent_result, print_hand_eye, print_plan};
 use b2b_services::recording::{RerunArgs, finish_recording, log_hand_eye_run};
 use b2b_services::setup::{Cart, LiveArgs, connect};
-use b2b_services::{RobotNoiseArgs, init_logging, run_main, stop_flag, write_json};
+use b2b_services::{RobotNoiseArgs, init_logging, positive, run_main, stop_flag, write_json};
 use b2b_vision::features::FeatureKind;
 use clap::{Parser, Subcommand};
 
@@ -86,12 +86,40 @@ enum Command {
         /// ... with at least this many good captures.
         #[arg(long, default_value_t = 20)]
         min_good: usize,
+        /// After the coordinator's result, stay and watch for drift (as `agent
+        /// watch`) at this rate until Ctrl-C.
+        #[arg(long, value_parser = positive)]
+        watch_hz: Option<f64>,
         #[command(flatten)]
         bus: BusArgs,
         #[command(flatten)]
         live: LiveArgs,
         #[command(flatten)]
         rerun: RerunArgs,
+    },
+    /// The drift watch during the operation: move to a pose with the board in
+    /// view (the first planned viewpoint) and publish an observation of it
+    /// (b2b/agent/ROBOT/watch) at a low rate, for `coordinator watch`.
+    Watch {
+        /// This cart's robot id.
+        #[arg(long)]
+        robot: String,
+        /// Simulated cart from a scene file.
+        #[arg(long, conflicts_with = "fri")]
+        sim: Option<PathBuf>,
+        /// A real controller over KUKA FRI at HOST:PORT (needs --setup).
+        #[arg(long)]
+        fri: Option<String>,
+        /// Observations per second.
+        #[arg(long, default_value_t = 5.0, value_parser = positive)]
+        hz: f64,
+        /// Stop after this many seconds (default: until Ctrl-C).
+        #[arg(long, value_parser = positive)]
+        duration_s: Option<f64>,
+        #[command(flatten)]
+        bus: BusArgs,
+        #[command(flatten)]
+        live: LiveArgs,
     },
     /// Hand-eye (T_flange_camera) of one robot from a b2b-dataset/1 folder.
     Handeye {
@@ -196,6 +224,7 @@ fn main() -> std::process::ExitCode {
             stop_sigma_mm,
             stop_sigma_deg,
             min_good,
+            watch_hz,
             bus,
             live,
             rerun,
@@ -215,10 +244,72 @@ fn main() -> std::process::ExitCode {
                 print_plan(&robot, source.plan_only()?);
                 return Ok(());
             }
+            let (zenoh, state_dir) = (bus.zenoh.clone(), bus.state_dir.clone());
             let opts = agent_options(&robot, bus, Duration::ZERO, live.noise.options(), &rerun)?;
-            let result = run_agent(&opts, &mut source, &stop_flag());
+            let stop = stop_flag();
+            let result = run_agent(&opts, &mut source, &stop);
+            let calibrated = result.as_ref().is_ok_and(Option::is_some);
+            let watched = match watch_hz {
+                Some(hz) if calibrated => {
+                    let bus = b2b_services::bus::ZenohBus::open(
+                        zenoh.as_deref(),
+                        b2b_services::bus::Role::Agent,
+                    )?;
+                    let period = Duration::from_secs_f64(1.0 / hz);
+                    eprintln!(
+                        "{robot}: the coordinator has its result; watching for drift at {hz} Hz until Ctrl-C (the result is printed after)"
+                    );
+                    Some(run_watch(
+                        &bus,
+                        &robot,
+                        &state_dir,
+                        &mut source,
+                        period,
+                        &stop,
+                    ))
+                }
+                _ => None,
+            };
             drop(source);
-            finish(opts, result)
+            finish(opts, result)?;
+            if let Some(n) = watched {
+                eprintln!("{robot}: {} watch observations published", n?);
+            }
+            Ok(())
+        }
+        Command::Watch {
+            robot,
+            sim,
+            fri,
+            hz,
+            duration_s,
+            bus,
+            live,
+        } => {
+            let cart = Cart::from_flags(sim.as_deref(), fri.as_deref())?;
+            let (mut source, _cart) = connect(&robot, cart, &live, Mode::Program, None)?;
+            let zenoh = b2b_services::bus::ZenohBus::open(
+                bus.zenoh.as_deref(),
+                b2b_services::bus::Role::Agent,
+            )?;
+            let stop = stop_flag();
+            if let Some(s) = duration_s {
+                let stop = Arc::clone(&stop);
+                std::thread::spawn(move || {
+                    std::thread::sleep(Duration::from_secs_f64(s));
+                    stop.store(true, std::sync::atomic::Ordering::SeqCst);
+                });
+            }
+            let n = run_watch(
+                &zenoh,
+                &robot,
+                &bus.state_dir,
+                &mut source,
+                Duration::from_secs_f64(1.0 / hz),
+                &stop,
+            )?;
+            eprintln!("{robot}: {n} watch observations published");
+            Ok(())
         }
         Command::Handeye {
             dataset,

@@ -1,21 +1,25 @@
 //! `coordinator`: turns both robots' data into `base1_from_base2`, live over zenoh
 //! (`run`) or offline from a dataset (`calibrate`), and checks a result against
-//! touch points (`verify`).
+//! touch points (`verify`). `calibrate` and `run` keep every result and hand-eye
+//! in the state folder's history (`history` lists it).
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::rgbd::RgbdOptions;
-use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, verify};
+use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, pair_transform, verify_pair};
 use b2b_protocol::CalibrationResult;
-use b2b_services::outputs::{print_result, print_verification, report_inputs, write_result};
+use b2b_services::history;
+use b2b_services::outputs::{
+    add_history, print_result, print_verification, report_inputs, write_result,
+};
 use b2b_services::recording::{
     RerunArgs, finish_recording, log_offline_calibration, log_result, log_verification,
 };
 use b2b_services::{
-    RobotNoiseArgs, coordinator, init_logging, non_negative, read_json, run_main, stop_flag,
-    write_json,
+    RobotNoiseArgs, coordinator, init_logging, non_negative, read_json, robot_pair, run_main,
+    stop_flag, write_json,
 };
 use clap::{Parser, Subcommand};
 
@@ -44,7 +48,8 @@ enum Command {
         /// tcp/127.0.0.1:7447.
         #[arg(long)]
         zenoh: Option<PathBuf>,
-        /// Where every received sample is journalled (a restart resumes from it).
+        /// Where every received sample is journalled (a restart resumes from it)
+        /// and the history is kept (history.sqlite).
         #[arg(long, default_value = "coordinator-state")]
         state_dir: PathBuf,
         /// Robot ids in order (robot 1 first); default: sorted ids.
@@ -65,8 +70,10 @@ enum Command {
         #[command(flatten)]
         rerun: RerunArgs,
     },
-    /// base1_from_base2 from a two-robot b2b-dataset/1 folder (never reads
-    /// ground_truth.json or reference.json).
+    /// base1_from_base2 from a b2b-dataset/1 folder (never reads
+    /// ground_truth.json or reference.json). With N > 2 robots (board and
+    /// multimarker methods) every base is solved in one problem and given in the
+    /// first robot's base (RESULT.json `reference`, `bases`, `pairs`).
     Calibrate {
         /// The b2b-dataset/1 folder (dataset.json, robotN/captures.csv, images).
         #[arg(long)]
@@ -89,6 +96,11 @@ enum Command {
         /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
         #[arg(long)]
         out: PathBuf,
+        /// The coordinator's state folder: the result and its hand-eyes are
+        /// recorded in its history (history.sqlite), and each hand-eye is
+        /// checked against its robot's earlier ones.
+        #[arg(long, default_value = "coordinator-state")]
+        state_dir: PathBuf,
         #[command(flatten)]
         noise: RobotNoiseArgs,
         #[command(flatten)]
@@ -109,6 +121,11 @@ enum Command {
         /// Each pointer tip's noise (1 sigma, mm), added to the predicted bounds.
         #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
         tip_sigma_mm: f64,
+        /// The two robots the touch file pairs, `a,b` (columns 1-3 in a's base,
+        /// 4-6 in b's), for a result of more than two robots; default: the
+        /// first two (T_base1_base2).
+        #[arg(long, value_parser = robot_pair)]
+        pair: Option<(String, String)>,
         #[command(flatten)]
         rerun: RerunArgs,
     },
@@ -164,6 +181,53 @@ enum Command {
         /// Output folder (index.html and the plots).
         #[arg(long)]
         out: PathBuf,
+        /// The coordinator's state folder, whose history (history.sqlite) adds
+        /// each robot's hand-eye over time.
+        #[arg(long, default_value = "coordinator-state")]
+        state_dir: PathBuf,
+    },
+    /// The drift watch during the operation: follows the agents' observations
+    /// (agent watch) and raises an alarm (b2b/coordinator/alarm, a line on
+    /// stderr, the recording) when a cart's base has moved against RESULT.json
+    /// by more than the result and the observations' noise explain (a
+    /// sequential test; thresholds printed at start, ARCHITECTURE.md).
+    Watch {
+        /// The RESULT.json the carts were calibrated with.
+        #[arg(long)]
+        result: PathBuf,
+        /// zenoh configuration file (JSON5); default: loopback peer listening on
+        /// tcp/127.0.0.1:7447.
+        #[arg(long)]
+        zenoh: Option<PathBuf>,
+        /// Exit with status 3 at the first alarm.
+        #[arg(long)]
+        until_alarm: bool,
+        /// Stop after this many seconds (default: until Ctrl-C).
+        #[arg(long, value_parser = b2b_services::positive)]
+        duration_s: Option<f64>,
+        /// Pair an observation with the reference robot's latest one only if
+        /// that one is at most this old (s).
+        #[arg(long, default_value_t = 2.0, value_parser = b2b_services::positive)]
+        max_age_s: f64,
+        /// Where the alarms' sequence number is kept.
+        #[arg(long, default_value = "coordinator-state")]
+        state_dir: PathBuf,
+        #[command(flatten)]
+        rerun: RerunArgs,
+    },
+    /// Lists what the platform has seen: every result recorded by calibrate and
+    /// run (when, method, robots, T_base1_base2, predicted p95, the result file)
+    /// and each robot's hand-eyes over time.
+    History {
+        /// Only this robot's results and hand-eyes.
+        #[arg(long)]
+        robot: Option<String>,
+        /// Print the history as JSON on stdout.
+        #[arg(long)]
+        json: bool,
+        /// The coordinator's state folder (history.sqlite in it).
+        #[arg(long, default_value = "coordinator-state")]
+        state_dir: PathBuf,
     },
 }
 
@@ -195,8 +259,8 @@ fn main() -> std::process::ExitCode {
             check_refine_intrinsics(refine_intrinsics, method)?;
             let opts = coordinator::RunOptions {
                 zenoh,
-                state_dir,
-                robots: 2,
+                state_dir: state_dir.clone(),
+                robots: robots.as_ref().map_or(2, Vec::len),
                 order: robots.clone(),
                 refine: RefineOptions {
                     refine_intrinsics,
@@ -205,8 +269,13 @@ fn main() -> std::process::ExitCode {
                 method,
                 rgbd: RgbdOptions::default(),
             };
-            let (result, counters) = coordinator::run(&opts, &stop_flag())?;
+            let (mut result, counters) = coordinator::run(&opts, &stop_flag())?;
+            history::check_before_writing(&state_dir, &mut result);
             write_result(&out, &result).context("writing the result")?;
+            let order = robots
+                .clone()
+                .unwrap_or_else(|| history::robots_of(&result));
+            history::record_after_writing(&state_dir, "run", &result, &out, &order);
             log_result(&recorder, &result, robots.as_deref());
             finish_recording(recorder);
             print_result(&result);
@@ -223,6 +292,7 @@ fn main() -> std::process::ExitCode {
             hand_eye,
             refine_intrinsics,
             out,
+            state_dir,
             noise,
             rerun,
         } => {
@@ -234,7 +304,7 @@ fn main() -> std::process::ExitCode {
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
             check_refine_intrinsics(refine_intrinsics, method)?;
-            let (result, cameras) = if hand_eye.is_empty() {
+            let (mut result, cameras) = if hand_eye.is_empty() {
                 let options = RefineOptions {
                     refine_intrinsics,
                     ..noise.options()
@@ -251,9 +321,11 @@ fn main() -> std::process::ExitCode {
                 let result = coordinator::rgbd_with_hand_eye_files(&ds, &hand_eye)?;
                 (result, vec![])
             };
+            history::check_before_writing(&state_dir, &mut result);
             write_result(&out, &result).context("writing the result")?;
+            let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
+            history::record_after_writing(&state_dir, "calibrate", &result, &out, &order);
             if !hand_eye.is_empty() {
-                let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
                 log_result(&recorder, &result, Some(&order));
             }
             finish_recording(recorder);
@@ -272,19 +344,32 @@ fn main() -> std::process::ExitCode {
             touch_points,
             json,
             tip_sigma_mm,
+            pair,
             rerun,
         } => {
             let recorder = rerun.recorder("b2b-verify")?;
             let r: CalibrationResult = read_json(&result)?;
             r.validate().with_context(|| result.display().to_string())?;
             let touches = b2b_dataset::read_touch_points(&touch_points)?;
-            let (report, m) = verify(&r, &touches, tip_sigma_mm * 1e-3)?;
+            let pair = pair.as_ref().map(|(a, b)| (a.as_str(), b.as_str()));
+            let (report, m) = verify_pair(&r, pair, &touches, tip_sigma_mm * 1e-3)
+                .with_context(|| result.display().to_string())?;
+            if let Some((a, b)) = pair {
+                println!(
+                    "robot {b}'s base in robot {a}'s, against {}",
+                    touch_points.display()
+                );
+            }
             print_verification(&report, &m);
             if let Some(path) = json {
                 write_json(&path, &report)?;
                 println!("wrote {}", path.display());
             }
-            log_verification(&recorder, &r, &touches, &m)?;
+            let a_from_b = match pair {
+                Some((a, b)) => pair_transform(&r, a, b)?.0,
+                None => r.base1_from_base2.to_isometry("T_base1_base2")?,
+            };
+            log_verification(&recorder, &r, &a_from_b, &touches, &m)?;
             finish_recording(recorder);
             Ok(())
         }
@@ -332,18 +417,57 @@ fn main() -> std::process::ExitCode {
             touch_points,
             tip_sigma_mm,
             out,
+            state_dir,
         } => {
-            let inputs = report_inputs(
+            let mut inputs = report_inputs(
                 &result,
                 verify.as_deref(),
                 &hand_eye,
                 touch_points.as_deref(),
                 tip_sigma_mm * 1e-3,
             )?;
+            if let Err(e) = add_history(&mut inputs, &history::db_path(&state_dir)) {
+                eprintln!(
+                    "warning: the report has no hand-eye history: {}",
+                    b2b_pipeline::error_chain(&e)
+                );
+            }
             let files = b2b_report::write_report(&inputs, &out)?;
             println!("wrote {}", files.index.display());
             Ok(())
         }
+        Command::Watch {
+            result,
+            zenoh,
+            until_alarm,
+            duration_s,
+            max_age_s,
+            state_dir,
+            rerun,
+        } => {
+            let recorder = rerun.recorder("b2b-watch")?;
+            let opts = b2b_services::watch::WatchOptions {
+                drift: b2b_calib::drift::DriftOptions::default(),
+                max_age: std::time::Duration::from_secs_f64(max_age_s),
+                until_alarm,
+                duration: duration_s.map(std::time::Duration::from_secs_f64),
+                state_dir,
+            };
+            let outcome = b2b_services::watch::watch_command(
+                &result,
+                zenoh.as_deref(),
+                &opts,
+                &recorder,
+                &stop_flag(),
+            );
+            finish_recording(recorder);
+            outcome
+        }
+        Command::History {
+            robot,
+            json,
+            state_dir,
+        } => history::print_listing(&state_dir, robot.as_deref(), json),
     })
 }
 

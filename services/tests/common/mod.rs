@@ -6,6 +6,15 @@
 use std::net::TcpListener;
 use std::path::PathBuf;
 
+/// A coordinator state folder beside a result file, so that a test's history
+/// database lives in its own temporary folder, never in the checkout.
+pub fn state_beside(result: &std::path::Path) -> PathBuf {
+    result
+        .parent()
+        .unwrap_or_else(|| std::path::Path::new("."))
+        .join("coordinator-state")
+}
+
 pub fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -130,6 +139,8 @@ pub fn offline_result_of(
         .arg(dataset)
         .arg("--out")
         .arg(&out)
+        .arg("--state-dir")
+        .arg(state_beside(&out))
         .stdout(std::process::Stdio::null())
         .status()
         .unwrap();

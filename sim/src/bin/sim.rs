@@ -6,7 +6,10 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 #[derive(Debug, Parser)]
-#[command(name = "sim", about = "Two simulated iiwa carts with rendered cameras")]
+#[command(
+    name = "sim",
+    about = "Simulated iiwa carts (two or more) with rendered cameras"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -46,13 +49,27 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             let summary = b2b_sim::generate::generate(&scene, seed, &out).with_context(|| {
                 format!("generating {} from {}", out.display(), scene.display())
             })?;
-            println!(
-                "wrote {}: captures {:?} (planning attempts {:?}), {} touch pairs",
-                out.display(),
-                summary.captures,
-                summary.attempts,
-                summary.touches
-            );
+            println!("wrote {}", out.display());
+            for ((id, captures), attempts) in summary
+                .robots
+                .iter()
+                .zip(&summary.captures)
+                .zip(&summary.attempts)
+            {
+                println!("  {id}: {captures} captures ({attempts} planning attempts)");
+            }
+            if let [first, second, ..] = summary.robots.as_slice() {
+                println!(
+                    "  {first} + {second}: {} touch pairs (touch_points.csv)",
+                    summary.touches
+                );
+            }
+            for ((a, b), n) in &summary.pair_touches {
+                println!(
+                    "  {a} + {b}: {n} touch pairs ({})",
+                    b2b_dataset::pair_touch_file_name(a, b)
+                );
+            }
         }
     }
     Ok(())

@@ -62,11 +62,14 @@ pub fn regenerate(name: &str) -> b2b_dataset::Dataset {
     // What was written is a valid dataset with its truth, and names itself.
     let loaded = b2b_dataset::Dataset::load(&committed).unwrap();
     assert_eq!(loaded.manifest.name, name);
-    assert_eq!(loaded.robots.len(), 2);
+    let n = loaded.robots.len();
+    assert!(n >= 2, "{name}: {n} robots");
     assert!(loaded.robots.iter().all(|r| r.captures.len() >= 5));
     let truth = b2b_dataset::load_ground_truth(&committed).unwrap().unwrap();
-    assert!(truth.base1_from_base2.is_some());
-    assert_eq!(truth.flange_from_camera.len(), 2);
+    assert!((1..=n).all(|k| truth.base1_from_base(k).is_some()));
+    assert_eq!(truth.base1_from_base_n.len(), n - 2);
+    assert_eq!(truth.flange_from_camera.len(), n);
+    assert_eq!(truth.base_from_target.len(), n);
     assert!(loaded.touch_points.as_ref().is_some_and(|t| t.len() >= 10));
     loaded
 }

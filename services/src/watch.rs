@@ -1,0 +1,513 @@
+//! `coordinator watch`: the drift watch during the operation.
+//!
+//! The agents keep observing the target at a low rate (`agent watch`,
+//! publishing `Capture` messages under `b2b/agent/{robot}/watch`). Each
+//! observation of a robot other than the reference is paired with the
+//! reference robot's latest one (received within
+//! [`WatchOptions::max_age`]), both are put into the reference base through
+//! RESULT.json (each robot's hand-eye and base), and their difference goes to
+//! that pair's sequential test ([`b2b_calib::drift::PairWatch`]: first against
+//! the result and its covariance, then a CUSUM). An alarm goes out on
+//! `b2b/coordinator/alarm`, on stderr and into the recording; each pair alarms
+//! once.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use b2b_calib::Iso3;
+use b2b_calib::drift::{DriftEvent, DriftOptions, PairWatch, innovation};
+use b2b_protocol::CalibrationResult;
+use b2b_protocol::messages::{COORDINATOR, Capture, DriftAlarm, Envelope, agent_key, alarm_key};
+use nalgebra::{Matrix6, Point3};
+
+use crate::agent::{Sequence, WATCH_TOPIC};
+use crate::bus::{self, Bus};
+
+/// Settings of `coordinator watch`.
+#[derive(Debug, Clone)]
+pub struct WatchOptions {
+    pub drift: DriftOptions,
+    /// The oldest reference observation an observation is paired with.
+    pub max_age: Duration,
+    /// Stop at the first alarm.
+    pub until_alarm: bool,
+    /// Stop after this long (`None`: until Ctrl-C).
+    pub duration: Option<Duration>,
+    /// Where the alarms' sequence number is kept.
+    pub state_dir: PathBuf,
+}
+
+/// One robot as the result has it.
+#[derive(Debug, Clone)]
+struct RobotModel {
+    ref_from_base: Iso3,
+    flange_from_camera: Iso3,
+    /// The result's covariance of this robot's base in the reference's.
+    covariance: Matrix6<f64>,
+}
+
+/// What one observation did.
+#[derive(Debug, Clone, PartialEq)]
+pub enum WatchEvent {
+    /// Not tested, and why.
+    Skipped { robot: String, why: String },
+    /// The pair is still establishing its baseline.
+    Learning {
+        robot: String,
+        seen: usize,
+        needed: usize,
+    },
+    /// The baseline is set and agrees with the result (`chi2` of its misfit).
+    Armed { robot: String, chi2: f64 },
+    /// Tested: `z` of this observation and the CUSUM after it.
+    Watching { robot: String, z: f64, cusum: f64 },
+    /// A move.
+    Alarm(DriftAlarm),
+}
+
+/// The decisions of the watch, without the bus: observations in, events out.
+#[derive(Debug, Clone)]
+pub struct Watcher {
+    reference: String,
+    options: DriftOptions,
+    max_age: Duration,
+    robots: BTreeMap<String, RobotModel>,
+    pairs: BTreeMap<String, PairWatch>,
+    alarmed: BTreeMap<String, DriftAlarm>,
+    /// The reference robot's latest target pose in its base, when it arrived,
+    /// and the target's centre (in the target frame).
+    latest_reference: Option<(Instant, Iso3, Point3<f64>)>,
+}
+
+impl Watcher {
+    /// Every robot of the result with its hand-eye and its base in the
+    /// reference's; the result must name its reference (results of this version
+    /// do).
+    pub fn new(
+        result: &CalibrationResult,
+        options: DriftOptions,
+        max_age: Duration,
+    ) -> anyhow::Result<Self> {
+        let reference = result.reference.clone().context(
+            "the result does not name its reference robot (written by an older version): calibrate again",
+        )?;
+        let mut robots = BTreeMap::new();
+        for (id, pose) in &result.hand_eye {
+            let flange_from_camera = pose.to_isometry(&format!("hand_eye.{id}"))?;
+            let (ref_from_base, covariance) = if *id == reference {
+                (Iso3::identity(), Matrix6::zeros())
+            } else {
+                b2b_pipeline::pair_transform(result, &reference, id)?
+            };
+            robots.insert(
+                id.clone(),
+                RobotModel {
+                    ref_from_base,
+                    flange_from_camera,
+                    covariance,
+                },
+            );
+        }
+        anyhow::ensure!(
+            robots.contains_key(&reference),
+            "the result's reference robot '{reference}' has no hand-eye in it"
+        );
+        Ok(Watcher {
+            reference,
+            options,
+            max_age,
+            robots,
+            pairs: BTreeMap::new(),
+            alarmed: BTreeMap::new(),
+            latest_reference: None,
+        })
+    }
+
+    /// The robots the result holds.
+    pub fn robots(&self) -> Vec<String> {
+        self.robots.keys().cloned().collect()
+    }
+
+    /// The alarms raised so far, by robot.
+    pub fn alarms(&self) -> &BTreeMap<String, DriftAlarm> {
+        &self.alarmed
+    }
+
+    /// Tests one observation of `robot`, received at `at`.
+    pub fn observe(&mut self, robot: &str, at: Instant, capture: &Capture) -> WatchEvent {
+        let skipped = |why: String| WatchEvent::Skipped {
+            robot: robot.to_owned(),
+            why,
+        };
+        let Some(model) = self.robots.get(robot) else {
+            return skipped("not a robot of the result".into());
+        };
+        let Some(o) = &capture.observation else {
+            return skipped(format!(
+                "no target in frame {}: {}",
+                capture.index,
+                capture.rejected.as_deref().unwrap_or("not seen")
+            ));
+        };
+        let (Ok(base_from_flange), Ok(camera_from_target)) = (
+            capture.base_from_flange.to_isometry("T_base_flange"),
+            o.camera_from_target.to_isometry("T_camera_target"),
+        ) else {
+            return skipped("a pose that is not a rigid transform".into());
+        };
+        let ref_from_target =
+            model.ref_from_base * base_from_flange * model.flange_from_camera * camera_from_target;
+        let centre = match o.target_centre {
+            Some(c) => Point3::from(c),
+            None => {
+                let n = o.target_points.len().max(1) as f64;
+                Point3::from(
+                    o.target_points
+                        .iter()
+                        .fold(nalgebra::Vector3::zeros(), |s, p| {
+                            s + nalgebra::Vector3::from(*p)
+                        })
+                        / n,
+                )
+            }
+        };
+        if robot == self.reference {
+            self.latest_reference = Some((at, ref_from_target, centre));
+            return WatchEvent::Skipped {
+                robot: robot.to_owned(),
+                why: "the reference (its observations pair with the others')".into(),
+            };
+        }
+        if self.alarmed.contains_key(robot) {
+            return skipped("alarm already raised".into());
+        }
+        let Some((seen_at, reference_pose, _)) = self.latest_reference else {
+            return skipped(format!("no observation of {} yet", self.reference));
+        };
+        let age = at.saturating_duration_since(seen_at);
+        if age > self.max_age {
+            return skipped(format!(
+                "the latest observation of {} is {:.1} s old",
+                self.reference,
+                age.as_secs_f64()
+            ));
+        }
+        let d = innovation(&ref_from_target, &reference_pose, &centre);
+        let options = self.options;
+        let covariance = model.covariance;
+        let pair = self
+            .pairs
+            .entry(robot.to_owned())
+            .or_insert_with(|| PairWatch::new(options, &covariance, &(reference_pose * centre)));
+        match pair.update(&d) {
+            DriftEvent::Learning { seen, needed } => WatchEvent::Learning {
+                robot: robot.to_owned(),
+                seen,
+                needed,
+            },
+            DriftEvent::Armed { chi2, .. } => WatchEvent::Armed {
+                robot: robot.to_owned(),
+                chi2,
+            },
+            DriftEvent::Watching { z, g } => WatchEvent::Watching {
+                robot: robot.to_owned(),
+                z,
+                cusum: g,
+            },
+            DriftEvent::Alarm {
+                z,
+                g,
+                shift,
+                against_result,
+            } => {
+                let shift_m = shift.fixed_rows::<3>(3).norm();
+                let turn_rad = shift.fixed_rows::<3>(0).norm();
+                let (statistic, threshold) = if against_result {
+                    (z, options.result_chi2)
+                } else {
+                    (g, options.h)
+                };
+                let why = if against_result {
+                    format!(
+                        "its first observations disagree with the result (chi2 {statistic:.1} > {threshold:.1}): moved before the watch began, or the result is off"
+                    )
+                } else {
+                    format!("CUSUM {statistic:.1} > {threshold:.1}")
+                };
+                let alarm = DriftAlarm {
+                    robot: robot.to_owned(),
+                    reference: self.reference.clone(),
+                    shift_m,
+                    turn_rad,
+                    against_result,
+                    statistic,
+                    threshold,
+                    message: format!(
+                        "ALARM: cart {robot} moved against {}: the target shifted {:.2} mm and turned {:.3} deg ({why}); re-calibrate before going on",
+                        self.reference,
+                        shift_m * 1e3,
+                        turn_rad.to_degrees()
+                    ),
+                };
+                self.alarmed.insert(robot.to_owned(), alarm.clone());
+                WatchEvent::Alarm(alarm)
+            }
+        }
+    }
+}
+
+/// What a watch saw.
+#[derive(Debug, Clone, Default)]
+pub struct WatchRun {
+    /// Observations received and valid.
+    pub observations: u64,
+    /// Messages rejected as invalid.
+    pub rejected: u64,
+    pub alarms: Vec<DriftAlarm>,
+}
+
+/// Runs `watcher` on `bus` until `stop`, the duration, or (with
+/// `until_alarm`) the first alarm; `on_event` sees every decision.
+pub fn run(
+    bus: &dyn Bus,
+    mut watcher: Watcher,
+    opts: &WatchOptions,
+    stop: &AtomicBool,
+    on_event: &mut dyn FnMut(&WatchEvent),
+) -> anyhow::Result<WatchRun> {
+    let inbox = bus.subscribe(&agent_key("*", WATCH_TOPIC))?;
+    let seq = Sequence::open_named(&opts.state_dir, "watch")?;
+    let started = Instant::now();
+    let mut run = WatchRun::default();
+    while !stop.load(Ordering::SeqCst) {
+        if opts.duration.is_some_and(|d| started.elapsed() >= d) {
+            break;
+        }
+        let Some(msg) = inbox.recv_timeout(Duration::from_millis(200))? else {
+            continue;
+        };
+        let Some((robot, _)) = bus::parse_agent_key(&msg.key) else {
+            continue;
+        };
+        let robot = robot.to_owned();
+        let envelope = match bus::decode::<Capture>(&msg.key, &msg.payload) {
+            Ok(e) => e,
+            Err(reason) => {
+                run.rejected += 1;
+                tracing::warn!("{reason}");
+                continue;
+            }
+        };
+        run.observations += 1;
+        let event = watcher.observe(&robot, Instant::now(), &envelope.body);
+        on_event(&event);
+        if let WatchEvent::Alarm(alarm) = &event {
+            bus::publish(
+                bus,
+                &alarm_key(),
+                &Envelope::new(COORDINATOR, seq.take()?, alarm.clone()),
+            )?;
+            run.alarms.push(alarm.clone());
+            if opts.until_alarm {
+                break;
+            }
+        }
+    }
+    Ok(run)
+}
+
+/// `coordinator watch` as the binary runs it: reads RESULT.json, watches on
+/// zenoh, prints the decisions (each robot's baseline, a summary every 5 s,
+/// every alarm on stderr) and records them; with `until_alarm`, an alarm ends
+/// the command with exit status 3.
+pub fn watch_command(
+    result_file: &std::path::Path,
+    zenoh: Option<&std::path::Path>,
+    opts: &WatchOptions,
+    recorder: &b2b_viz::Recorder,
+    stop: &AtomicBool,
+) -> anyhow::Result<()> {
+    let result: CalibrationResult = crate::read_json(result_file)?;
+    result
+        .validate()
+        .with_context(|| result_file.display().to_string())?;
+    let bus = bus::ZenohBus::open(zenoh, bus::Role::Coordinator)?;
+    let watcher = Watcher::new(&result, opts.drift, opts.max_age)
+        .with_context(|| result_file.display().to_string())?;
+    eprintln!(
+        "watching {} against {} (baseline {} observations, CUSUM k {}, h {}; against the result: chi2 limit {})",
+        watcher.robots().join(", "),
+        result_file.display(),
+        opts.drift.baseline,
+        opts.drift.k,
+        opts.drift.h,
+        opts.drift.result_chi2
+    );
+    // Per robot: observations tested since the last summary, the largest z;
+    // and those not tested, with the last reason.
+    let mut summary: BTreeMap<String, (u64, f64)> = BTreeMap::new();
+    let mut untested: BTreeMap<String, (u64, String)> = BTreeMap::new();
+    let reference = result.reference.clone().unwrap_or_default();
+    let mut last_summary = Instant::now();
+    let now_s = || {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(f64::NAN, |d| d.as_secs_f64())
+    };
+    let run = run(&bus, watcher, opts, stop, &mut |event| {
+        match event {
+            WatchEvent::Skipped { robot, why } => {
+                tracing::debug!("{robot}: skipped: {why}");
+                // The reference's own observations are used, not skipped.
+                if *robot != reference {
+                    let entry = untested.entry(robot.clone()).or_insert((0, String::new()));
+                    entry.0 += 1;
+                    entry.1.clone_from(why);
+                }
+            }
+            WatchEvent::Learning {
+                robot,
+                seen,
+                needed,
+            } => {
+                if *seen == 1 {
+                    eprintln!("{robot}: learning the baseline ({needed} observations)");
+                }
+            }
+            WatchEvent::Armed { robot, chi2 } => eprintln!(
+                "{robot}: armed; its misfit against the result: chi2 {chi2:.1} (limit {:.1})",
+                opts.drift.result_chi2
+            ),
+            WatchEvent::Watching { robot, z, cusum } => {
+                let entry = summary.entry(robot.clone()).or_insert((0, 0.0));
+                entry.0 += 1;
+                entry.1 = entry.1.max(*z);
+                if let Err(e) = recorder.log_watch(robot, now_s(), *z, *cusum) {
+                    tracing::warn!("rerun: {e}");
+                }
+            }
+            WatchEvent::Alarm(alarm) => {
+                eprintln!("{}", alarm.message);
+                if let Err(e) = recorder.log_alarm(now_s(), &alarm.message) {
+                    tracing::warn!("rerun: {e}");
+                }
+            }
+        }
+        if last_summary.elapsed() >= Duration::from_secs(5) {
+            for (robot, (n, z)) in std::mem::take(&mut summary) {
+                eprintln!("{robot}: watching, {n} observations in the last 5 s, largest z {z:.1}");
+            }
+            // Observations that could not be tested, so an operator sees why a
+            // cart is not watched (its reference silent, the target out of view).
+            for (robot, (n, why)) in std::mem::take(&mut untested) {
+                eprintln!(
+                    "{robot}: {n} observations in the last 5 s not tested, the last because: {why}"
+                );
+            }
+            last_summary = Instant::now();
+        }
+    })?;
+    eprintln!(
+        "watch ended: {} observations, {} rejected, {} alarm(s)",
+        run.observations,
+        run.rejected,
+        run.alarms.len()
+    );
+    if opts.until_alarm && !run.alarms.is_empty() {
+        return Err(crate::ExitStatus {
+            code: 3,
+            message: "watch: alarm raised (exit status 3)".into(),
+        }
+        .into());
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use b2b_protocol::Pose;
+    use b2b_protocol::messages::{BoardObservation, Intrinsics};
+
+    /// A result of two robots (the report's fixture), as an older version
+    /// wrote it: without `reference`.
+    fn older_result() -> CalibrationResult {
+        serde_json::from_str(include_str!("../../report/tests/fixtures/RESULT.json")).unwrap()
+    }
+
+    fn capture(index: u64, seen: bool) -> Capture {
+        Capture {
+            index,
+            controller_time_s: None,
+            image: None,
+            base_from_flange: Pose::IDENTITY,
+            camera: Intrinsics {
+                width: 640,
+                height: 480,
+                fx: 600.0,
+                fy: 600.0,
+                cx: 320.0,
+                cy: 240.0,
+                dist: vec![0.0; 5],
+            },
+            observation: seen.then(|| BoardObservation {
+                target_points: vec![[0.0; 3]; 4],
+                pixels: vec![[1.0, 2.0]; 4],
+                camera_from_target: Pose::from_isometry(&Iso3::translation(0.0, 0.0, 0.5)),
+                residuals_px: vec![0.1; 4],
+                rms_px: 0.1,
+                target_centre: Some([0.1, 0.06, 0.0]),
+            }),
+            rejected: (!seen).then(|| "board not found".to_owned()),
+            base_from_target: None,
+            features: None,
+        }
+    }
+
+    fn why(event: WatchEvent) -> String {
+        match event {
+            WatchEvent::Skipped { why, .. } => why,
+            other => panic!("not skipped: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_result_without_its_reference_is_refused() {
+        let err = Watcher::new(
+            &older_result(),
+            DriftOptions::default(),
+            Duration::from_secs(2),
+        )
+        .unwrap_err();
+        assert!(format!("{err:#}").contains("reference"), "{err:#}");
+    }
+
+    /// Observations that cannot be tested say why: an unknown robot, no
+    /// target in view, no reference observation yet, a stale one; then the
+    /// pair starts learning its baseline.
+    #[test]
+    fn untestable_observations_say_why() {
+        let mut result = older_result();
+        result.reference = Some("robot1".into());
+        let max_age = Duration::from_secs(2);
+        let mut w = Watcher::new(&result, DriftOptions::default(), max_age).unwrap();
+        assert_eq!(w.robots(), ["robot1", "robot2"]);
+        let t0 = Instant::now();
+        assert!(why(w.observe("robot9", t0, &capture(0, true))).contains("not a robot"));
+        assert!(why(w.observe("robot2", t0, &capture(1, false))).contains("board not found"));
+        assert!(
+            why(w.observe("robot2", t0, &capture(2, true))).contains("no observation of robot1")
+        );
+        w.observe("robot1", t0, &capture(0, true));
+        let late = t0 + max_age + Duration::from_millis(500);
+        assert!(why(w.observe("robot2", late, &capture(3, true))).contains("s old"));
+        assert!(matches!(
+            w.observe("robot2", t0 + Duration::from_millis(100), &capture(4, true)),
+            WatchEvent::Learning { seen: 1, .. }
+        ));
+        assert!(w.alarms().is_empty());
+    }
+}

@@ -1,0 +1,230 @@
+//! The drift watch end to end: two simulated carts (each its own process,
+//! started by its agent), `agent watch` on both, and `coordinator watch`, zenoh
+//! peers on loopback. The carts stand still for a while (no alarm), then one is
+//! bumped by 1 mm through the cart's command folder; the coordinator must raise
+//! the alarm on `b2b/coordinator/alarm` and stderr within 2 s of the bump and
+//! exit with status 3 (`--until-alarm`).
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use b2b_protocol::messages::{DriftAlarm, Envelope, alarm_key};
+use b2b_services::bus::{Bus, Role, ZenohBus};
+use common::{Killed, net};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The committed two-robot set: the simulated carts of its scene, with the
+/// same seed, are the arms that recorded it.
+fn dataset() -> PathBuf {
+    root().join("datasets/sim-checkerboard-2x12")
+}
+
+fn sim_cart() -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_agent"))
+        .with_file_name(format!("b2b-sim-cart{}", std::env::consts::EXE_SUFFIX))
+}
+
+/// Lines of a child's stderr, each with the time it was read.
+fn lines_of(child: &mut std::process::Child) -> mpsc::Receiver<(Instant, String)> {
+    let (tx, rx) = mpsc::channel();
+    let err = child.stderr.take().expect("stderr piped");
+    std::thread::spawn(move || {
+        for line in BufReader::new(err).lines() {
+            let Ok(line) = line else { break };
+            if tx.send((Instant::now(), line)).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+/// Waits for a line containing `needle`; every line read goes to `seen`.
+fn wait_for(
+    rx: &mpsc::Receiver<(Instant, String)>,
+    needle: &str,
+    limit: Duration,
+    seen: &mut Vec<String>,
+) -> Option<Instant> {
+    let deadline = Instant::now() + limit;
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        match rx.recv_timeout(left) {
+            Ok((at, line)) => {
+                let hit = line.contains(needle);
+                seen.push(line);
+                if hit {
+                    return Some(at);
+                }
+            }
+            Err(mpsc::RecvTimeoutError::Timeout) => return None,
+            Err(mpsc::RecvTimeoutError::Disconnected) => return None,
+        }
+    }
+    None
+}
+
+/// A cart shifted by 1 mm.
+#[test]
+fn a_cart_shifted_by_1_mm_alarms_within_2_s_and_still_carts_do_not() {
+    let a = bumped(&["--t-mm", "1,0,0"]);
+    // The base moved 1 mm: the target, seen through robot 2, by about as much.
+    assert!((0.5e-3..1.5e-3).contains(&a.shift_m), "{a:?}");
+}
+
+/// A cart turned by 0.1° about its vertical axis (the board, about 0.5 m from
+/// its base, moves by about 0.9 mm and turns by 0.1°).
+#[test]
+fn a_cart_turned_by_0_1_deg_alarms_within_2_s_and_still_carts_do_not() {
+    let a = bumped(&["--rpy-deg", "0,0,0.1"]);
+    assert!(
+        (0.05f64.to_radians()..0.15f64.to_radians()).contains(&a.turn_rad),
+        "{a:?}"
+    );
+}
+
+/// Calibrates, watches still carts for 10 s (no alarm), bumps robot 2 by
+/// `bump` (`b2b-sim-cart bump` flags) and returns the alarm, checked to come
+/// within 2 s on stderr and on the bus.
+fn bumped(bump: &[&str]) -> DriftAlarm {
+    // One cell at a time: four carts rendering at once on a 2-core machine
+    // would time the machine, not the watch.
+    static ONE_CELL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _cell = ONE_CELL.lock().unwrap_or_else(|e| e.into_inner());
+    let net = net();
+    let dir = net.dir.path();
+    let result = dir.join("RESULT.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["calibrate", "--dataset"])
+        .arg(dataset())
+        .arg("--out")
+        .arg(&result)
+        .arg("--state-dir")
+        .arg(dir.join("coordinator-state"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let control = dir.join("control");
+    std::fs::create_dir_all(&control).unwrap();
+
+    let mut coordinator = Killed(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["watch", "--until-alarm", "--result"])
+            .arg(&result)
+            .arg("--zenoh")
+            .arg(&net.coordinator_cfg)
+            .arg("--state-dir")
+            .arg(dir.join("coordinator-state"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let lines = lines_of(&mut coordinator.0);
+    // The test's own zenoh session, as any other process on the platform.
+    let bus = ZenohBus::open(Some(&net.agent_cfg), Role::Agent).unwrap();
+    let alarms = bus.subscribe(&alarm_key()).unwrap();
+    let scene = dataset().join("scene.json");
+    let _agents: Vec<Killed> = ["robot1", "robot2"]
+        .into_iter()
+        .map(|robot| {
+            Killed(
+                Command::new(env!("CARGO_BIN_EXE_agent"))
+                    .args([
+                        "watch",
+                        "--robot",
+                        robot,
+                        "--hz",
+                        "5",
+                        "--duration-s",
+                        "240",
+                    ])
+                    .arg("--sim")
+                    .arg(&scene)
+                    .arg("--sim-control")
+                    .arg(&control)
+                    .arg("--zenoh")
+                    .arg(&net.agent_cfg)
+                    .arg("--state-dir")
+                    .arg(dir.join(format!("agent-state-{robot}")))
+                    // The setup each agent derives for its cart goes in here: the
+                    // agents are killed at the end, before they could remove it.
+                    .env("TMPDIR", dir)
+                    .stdout(Stdio::null())
+                    .stderr(Stdio::null())
+                    .spawn()
+                    .unwrap(),
+            )
+        })
+        .collect();
+
+    let mut seen = Vec::new();
+    let armed = wait_for(&lines, "robot2: armed", Duration::from_secs(150), &mut seen);
+    assert!(armed.is_some(), "never armed: {seen:#?}");
+    // Still carts: no alarm for 10 s of watching.
+    let quiet = wait_for(&lines, "ALARM", Duration::from_secs(10), &mut seen);
+    assert!(quiet.is_none(), "a false alarm: {seen:#?}");
+    // Observations were tested meanwhile (a summary every 5 s).
+    assert!(
+        seen.iter().any(|l| l.starts_with("robot2: watching")),
+        "no observation tested: {seen:#?}"
+    );
+
+    let bumped = Instant::now();
+    let out = Command::new(sim_cart())
+        .args(["bump", "--robot", "robot2"])
+        .args(bump)
+        .arg("--control")
+        .arg(&control)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let alarm_at = wait_for(&lines, "ALARM", Duration::from_secs(30), &mut seen)
+        .unwrap_or_else(|| panic!("no alarm after the bump: {seen:#?}"));
+    let delay = alarm_at.duration_since(bumped);
+    let status = coordinator.0.wait().unwrap();
+    let alarm_line = seen.iter().find(|l| l.contains("ALARM")).cloned().unwrap();
+    for line in seen.iter().filter(|l| l.contains("armed")) {
+        eprintln!("{line}");
+    }
+    eprintln!(
+        "bumped robot2 ({}): alarm after {:.2} s: {alarm_line}",
+        bump.join(" "),
+        delay.as_secs_f64()
+    );
+    assert_eq!(status.code(), Some(3), "{seen:#?}");
+    assert!(alarm_line.contains("robot2"), "{alarm_line}");
+    // The issue: within 2 s of the move.
+    assert!(
+        delay < Duration::from_secs(2),
+        "alarm {delay:?} after the bump"
+    );
+    // The same alarm on the bus, with the size of the move.
+    let msg = alarms
+        .recv_timeout(Duration::from_secs(5))
+        .unwrap()
+        .expect("no alarm on b2b/coordinator/alarm");
+    let envelope: Envelope<DriftAlarm> = serde_json::from_slice(&msg.payload).unwrap();
+    let a = envelope.body;
+    assert_eq!(
+        (a.robot.as_str(), a.reference.as_str()),
+        ("robot2", "robot1")
+    );
+    assert!(!a.against_result, "{a:?}");
+    a
+}
