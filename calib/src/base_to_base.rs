@@ -87,7 +87,7 @@ pub fn refine_base_to_base(
         &captures,
         &BasesInitial {
             flange_from_camera: initial.flange_from_camera.to_vec(),
-            ref_from_target: initial.base1_from_target,
+            ref_from_targets: vec![initial.base1_from_target],
             ref_from_base: vec![initial.base1_from_base2],
         },
         options,
@@ -100,7 +100,8 @@ pub fn refine_base_to_base(
 pub struct BasesInitial {
     /// Per robot.
     pub flange_from_camera: Vec<Iso3>,
-    pub ref_from_target: Iso3,
+    /// Per target ([`BoardCapture::target`] indexes it).
+    pub ref_from_targets: Vec<Iso3>,
     /// Per robot after the reference (robots 1..N).
     pub ref_from_base: Vec<Iso3>,
 }
@@ -118,7 +119,8 @@ pub struct BasesEstimate {
     /// Per robot.
     pub flange_from_camera: Vec<Iso3>,
     pub flange_from_camera_covariance: Vec<Matrix6<f64>>,
-    pub ref_from_target: Iso3,
+    /// Per target ([`BoardCapture::target`] indexes it).
+    pub ref_from_targets: Vec<Iso3>,
     pub cameras: Vec<CameraModel>,
     /// Per robot, per capture: RMS residual (px) and rejected corners.
     pub per_capture: Vec<Vec<(f64, usize)>>,
@@ -192,7 +194,7 @@ impl BasesEstimate {
             covariance,
             flange_from_camera: two(self.flange_from_camera),
             flange_from_camera_covariance: two(self.flange_from_camera_covariance),
-            base1_from_target: self.ref_from_target,
+            base1_from_target: self.ref_from_targets[0],
             cameras: two(self.cameras),
             per_capture: two(self.per_capture),
             sigma_px: self.sigma_px,
@@ -210,10 +212,47 @@ pub(crate) fn two<T>(v: Vec<T>) -> [T; 2] {
         .unwrap_or_else(|_| unreachable!("a two-robot problem has two robots"))
 }
 
-/// Solves N >= 2 robots that see one target as one problem: every hand-eye, the
-/// target's pose and every base in robot 0's base. Every corner of every
-/// capture constrains them together, so the bases share what the reference
-/// robot's captures and the target pose carry, and their covariance says so.
+/// The robots (indices) that no chain of shared targets links to robot 0:
+/// robots and targets are the nodes of a graph, a capture of target `t` by
+/// robot `r` an edge. Empty when every robot is linked.
+pub fn cut_off_robots(captures: &[&[BoardCapture]]) -> Vec<usize> {
+    let n = captures.len();
+    let targets = captures
+        .iter()
+        .flat_map(|c| c.iter().map(|c| c.target + 1))
+        .max()
+        .unwrap_or(0);
+    let sees = |r: usize, t: usize| captures[r].iter().any(|c| c.target == t);
+    let mut robot_linked = vec![false; n];
+    let mut target_linked = vec![false; targets];
+    let mut stack = vec![0usize];
+    if n > 0 {
+        robot_linked[0] = true;
+    }
+    while let Some(r) = stack.pop() {
+        for (t, target) in target_linked.iter_mut().enumerate() {
+            if *target || !sees(r, t) {
+                continue;
+            }
+            *target = true;
+            for (other, linked) in robot_linked.iter_mut().enumerate() {
+                if !*linked && sees(other, t) {
+                    *linked = true;
+                    stack.push(other);
+                }
+            }
+        }
+    }
+    (0..n).filter(|r| !robot_linked[*r]).collect()
+}
+
+/// Solves N >= 2 robots as one problem: every hand-eye, every target's pose and
+/// every base in robot 0's base. Every corner of every capture constrains them
+/// together, so the bases share what the reference robot's captures and the
+/// target poses carry, and their covariance says so. With several targets
+/// ([`BoardCapture::target`]) a robot that does not see robot 0's target is
+/// linked through robots that see both; every robot must be linked
+/// ([`cut_off_robots`]).
 pub fn refine_bases(
     cameras: &[&CameraModel],
     captures: &[&[BoardCapture]],
@@ -241,27 +280,50 @@ pub fn refine_bases(
             });
         }
     }
+    let targets = initial.ref_from_targets.len();
+    for (robot, caps) in captures.iter().enumerate() {
+        if let Some((capture, c)) = caps.iter().enumerate().find(|(_, c)| c.target >= targets) {
+            return Err(CalibError::UnknownTarget {
+                robot,
+                capture,
+                target: c.target,
+                targets,
+            });
+        }
+    }
+    if let Some(target) = (0..targets).find(|t| {
+        !captures
+            .iter()
+            .flat_map(|c| c.iter())
+            .any(|c| c.target == *t)
+    }) {
+        return Err(CalibError::UnseenTarget { target });
+    }
+    let cut_off = cut_off_robots(captures);
+    if !cut_off.is_empty() {
+        return Err(CalibError::Disconnected { cut_off });
+    }
     for caps in captures.iter() {
         let base_from_flange: Vec<Iso3> = caps.iter().map(|c| c.base_from_flange).collect();
         crate::degeneracy::check_motions(&base_from_flange, &options.motion)?;
     }
-    // Blocks: 0..n the hand-eyes, n the target in the reference base, n + r
-    // (r = 1..n) robot r's base in the reference base.
-    let target = n;
+    // Blocks: 0..n the hand-eyes, n..n + T the targets in the reference base,
+    // n + T - 1 + r (r = 1..n) robot r's base in the reference base.
+    let first_base = n + targets;
     let mut models = Vec::new();
     for (robot, caps) in captures.iter().enumerate() {
         for c in caps.iter() {
             models.push(CaptureModel::new(
                 c.clone(),
                 robot,
-                (robot > 0).then_some(n + robot),
-                target,
+                (robot > 0).then_some(first_base + robot - 1),
+                n + c.target,
                 robot,
             ));
         }
     }
     let mut poses = initial.flange_from_camera.clone();
-    poses.push(initial.ref_from_target);
+    poses.extend(initial.ref_from_targets.iter().copied());
     poses.extend(initial.ref_from_base.iter().copied());
     let sol = solve(
         poses,
@@ -281,14 +343,14 @@ pub fn refine_bases(
         rejections.push(sol.rejections[start..end].to_vec());
         start = end;
     }
-    let first = 6 * (n + 1);
+    let first = 6 * first_base;
     let m = 6 * (n - 1);
     Ok(BasesEstimate {
-        ref_from_base: sol.poses[n + 1..].to_vec(),
+        ref_from_base: sol.poses[first_base..].to_vec(),
         covariance: sol.covariance.view((first, first), (m, m)).into_owned(),
         flange_from_camera: sol.poses[..n].to_vec(),
         flange_from_camera_covariance: (0..n).map(block).collect(),
-        ref_from_target: sol.poses[target],
+        ref_from_targets: sol.poses[n..first_base].to_vec(),
         cameras: sol.cameras.clone(),
         per_capture,
         sigma_px: sol.sigma_px,
@@ -437,7 +499,7 @@ mod tests {
     fn bases_initial(three: &crate::synth::ThreeRobots) -> BasesInitial {
         BasesInitial {
             flange_from_camera: three.robots.iter().map(|r| r.flange_from_camera).collect(),
-            ref_from_target: three.robots[0].base_from_target,
+            ref_from_targets: vec![three.robots[0].base_from_target],
             ref_from_base: three.base1_from_base.to_vec(),
         }
     }
@@ -456,7 +518,7 @@ mod tests {
         for (k, b) in initial.ref_from_base.iter_mut().enumerate() {
             *b = perturb_left(&(d * (k as f64 + 1.0)), b);
         }
-        initial.ref_from_target = perturb_left(&d, &initial.ref_from_target);
+        initial.ref_from_targets[0] = perturb_left(&d, &initial.ref_from_targets[0]);
         let caps: Vec<Vec<BoardCapture>> = three.robots.iter().map(captures_of).collect();
         let slices: Vec<&[BoardCapture]> = caps.iter().map(Vec::as_slice).collect();
         let est = refine_bases(
@@ -487,7 +549,7 @@ mod tests {
             &[&caps],
             &BasesInitial {
                 flange_from_camera: vec![three.robots[0].flange_from_camera],
-                ref_from_target: three.robots[0].base_from_target,
+                ref_from_targets: vec![three.robots[0].base_from_target],
                 ref_from_base: vec![],
             },
             &RefineOptions::default(),
@@ -526,7 +588,7 @@ mod tests {
                 three.robots.iter().map(|r| separate(&cfg, r)).collect();
             let initial = BasesInitial {
                 flange_from_camera: sep.iter().map(|s| s.flange_from_camera).collect(),
-                ref_from_target: sep[0].base_from_target,
+                ref_from_targets: vec![sep[0].base_from_target],
                 ref_from_base: sep[1..]
                     .iter()
                     .map(|s| sep[0].base_from_target * s.base_from_target.inverse())

@@ -8,6 +8,30 @@ pub enum CalibError {
     /// A joint problem over robots with fewer robots than it needs.
     #[error("too few robots: {got}, need at least {need}")]
     TooFewRobots { got: usize, need: usize },
+    /// Robots (indices; 0 is the reference) that no chain of shared targets
+    /// links to the reference robot: a target links the robots that see it.
+    #[error(
+        "robot(s) {} share no target with robot 0, directly or through other robots: \
+         each target links only the robots that see it, so their bases cannot be found in robot 0's",
+        cut_off.iter().map(|r| r.to_string()).collect::<Vec<_>>().join(", ")
+    )]
+    Disconnected { cut_off: Vec<usize> },
+    /// A target index of a capture with no target in the problem to match it.
+    #[error(
+        "capture {capture} of robot {robot} saw target {target}, but the problem has {targets} target(s)"
+    )]
+    UnknownTarget {
+        robot: usize,
+        capture: usize,
+        target: usize,
+        targets: usize,
+    },
+    /// A target in the problem that no capture saw.
+    #[error("target {target} is seen by no capture")]
+    UnseenTarget { target: usize },
+    /// A one-robot fit given captures of several targets.
+    #[error("captures of {targets} targets: a hand-eye fit takes the captures of one target")]
+    SeveralTargets { targets: usize },
     /// Fewer touch pairs (or touches of one location) than a check needs.
     #[error("too few touch pairs: {got}, need at least {need}")]
     TooFewTouches { got: usize, need: usize },

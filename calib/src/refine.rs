@@ -117,6 +117,13 @@ pub enum NoiseModel {
     PerCapture(Vec<Matrix6<f64>>),
 }
 
+/// A corner this close (px) to its capture's pose subspace is never an
+/// outlier, however small the others' spread: no detector locates a corner
+/// better than a few hundredths of a pixel, and rows that give the board pose
+/// instead of an image carry corners projected exactly from it, whose spread
+/// is rounding alone.
+pub const CORNER_OUTLIER_FLOOR_PX: f64 = 0.05;
+
 /// Options of the refinement.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RefineOptions {
@@ -299,6 +306,10 @@ pub struct BoardCapture {
     /// Corner positions in the target frame, paired with `pixels`.
     pub target_points: Vec<Point3<f64>>,
     pub pixels: Vec<Point2<f64>>,
+    /// Which target the capture saw, when a problem has several (robots that
+    /// do not all see one target): an index into the problem's targets, 0 when
+    /// there is one.
+    pub target: usize,
 }
 
 /// How one capture enters the joint problem (indices into the pose blocks).
@@ -681,7 +692,7 @@ impl Engine {
                 let med = median(&mut norms);
                 let mut dev: Vec<f64> = norms.iter().map(|e| (e - med).abs()).collect();
                 let mad = median(&mut dev);
-                let limit = med + options.mad_k * 1.4826 * mad.max(1e-6);
+                let limit = (med + options.mad_k * 1.4826 * mad).max(CORNER_OUTLIER_FLOOR_PX);
                 for (cap, s) in self.captures.iter_mut().zip(&all) {
                     if cap.hand_eye != robot {
                         continue;
@@ -1419,6 +1430,19 @@ pub fn evaluate_hand_eye(
     hand_eye_problem(camera, captures, estimate, options, false)
 }
 
+/// One robot's fit takes the captures of one target.
+pub(crate) fn one_target(captures: &[BoardCapture]) -> Result<(), CalibError> {
+    let mut targets: Vec<usize> = captures.iter().map(|c| c.target).collect();
+    targets.sort_unstable();
+    targets.dedup();
+    if targets.len() > 1 {
+        return Err(CalibError::SeveralTargets {
+            targets: targets.len(),
+        });
+    }
+    Ok(())
+}
+
 fn hand_eye_problem(
     camera: &CameraModel,
     captures: &[BoardCapture],
@@ -1426,6 +1450,7 @@ fn hand_eye_problem(
     options: &RefineOptions,
     optimise: bool,
 ) -> Result<HandEyeEstimate, CalibError> {
+    one_target(captures)?;
     let base_from_flange: Vec<Iso3> = captures.iter().map(|c| c.base_from_flange).collect();
     crate::degeneracy::check_motions(&base_from_flange, &options.motion)?;
     let models = captures

@@ -284,6 +284,7 @@ impl SynthRobot {
                 base_from_flange: *b,
                 target_points: obs.iter().map(|(k, _)| self.board[*k]).collect(),
                 pixels: obs.iter().map(|(_, uv)| *uv).collect(),
+                target: 0,
             })
             .collect()
     }
@@ -383,5 +384,70 @@ pub fn three_robots(seed: u64, cfg: &SynthConfig) -> Result<ThreeRobots, CalibEr
     Ok(ThreeRobots {
         robots: [r1, r2, r3],
         base1_from_base: [two.base1_from_base2, base1_from_base3],
+    })
+}
+
+/// Three robots and two targets that no robot but the second sees both of:
+/// robot 1 sees target 0 (the board of [`three_robots`]), robot 3 sees target
+/// 1 (a board beside robot 3, out of robot 1's sight), robot 2 sees both. Robot
+/// 3 is found in robot 1's base only through robot 2.
+#[derive(Debug, Clone)]
+pub struct TwoTargets {
+    /// `base1_from_base2`, `base1_from_base3`.
+    pub base1_from_base: [Iso3; 2],
+    /// Per target.
+    pub base1_from_target: [Iso3; 2],
+    /// `(robot, target, its captures of that target)`.
+    pub views: Vec<(usize, usize, SynthRobot)>,
+}
+
+impl TwoTargets {
+    /// One robot's captures of every target it sees (target indices set), and
+    /// the board poses PnP gave for them.
+    pub fn captures(&self, robot: usize) -> (Vec<crate::refine::BoardCapture>, Vec<Iso3>) {
+        let mut captures = Vec::new();
+        let mut poses = Vec::new();
+        for (r, t, seen) in &self.views {
+            if *r != robot {
+                continue;
+            }
+            captures.extend(seen.board_captures().into_iter().map(|mut c| {
+                c.target = *t;
+                c
+            }));
+            poses.extend(seen.camera_from_target.iter().copied());
+        }
+        (captures, poses)
+    }
+}
+
+/// [`TwoTargets`]; deterministic for a seed. With `linked` false robot 2 sees
+/// only target 0, so robot 3 is cut off.
+pub fn two_targets(seed: u64, cfg: &SynthConfig, linked: bool) -> Result<TwoTargets, CalibError> {
+    let three = three_robots(seed, cfg)?;
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x7477_6f74_6172_6765);
+    let base1_from_base3 = three.base1_from_base[1];
+    // The second board lies on the table half a metre in front of robot 3
+    // (its base's x), printed side up like the first.
+    let base1_from_target1 = base1_from_base3
+        * Iso3::from_parts(
+            Translation3::new(0.5, rng.random_range(-0.1..0.1), 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        );
+    let [r1, r2, r3] = three.robots;
+    let base1_from_target0 = r1.base_from_target;
+    let x2 = r2.flange_from_camera;
+    let x3 = r3.flange_from_camera;
+    let mut views = vec![(0, 0, r1), (1, 0, r2)];
+    if linked {
+        let base2_from_target1 = three.base1_from_base[0].inverse() * base1_from_target1;
+        views.push((1, 1, make_robot(&mut rng, cfg, x2, base2_from_target1)?));
+    }
+    let base3_from_target1 = base1_from_base3.inverse() * base1_from_target1;
+    views.push((2, 1, make_robot(&mut rng, cfg, x3, base3_from_target1)?));
+    Ok(TwoTargets {
+        base1_from_base: three.base1_from_base,
+        base1_from_target: [base1_from_target0, base1_from_target1],
+        views,
     })
 }

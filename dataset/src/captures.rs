@@ -12,14 +12,18 @@ use std::path::{Component, Path, PathBuf};
 use nalgebra::{Isometry3, Point3};
 
 use crate::error::{DatasetError, Location};
-use crate::manifest::RobotManifest;
+use crate::manifest::{RobotManifest, Target};
 use crate::pose::{self, PoseFields};
 use crate::table::{self, Row, Table};
+use std::collections::BTreeMap;
 
 /// The columns of `captures.csv`, in the order they are written.
 pub const CAPTURE_COLUMNS: [&str; 9] = ["image", "depth", "tx", "ty", "tz", "qx", "qy", "qz", "qw"];
 /// The optional board-pose block of `captures.csv` (`T_camera_target`).
 pub const CAMERA_POSE_COLUMNS: [&str; 7] = ["ctx", "cty", "ctz", "cqx", "cqy", "cqz", "cqw"];
+/// The optional column of `captures.csv` naming the target a capture saw (an id
+/// of the manifest's `targets`; empty: the manifest's `target`).
+pub const TARGET_COLUMN: &str = "target";
 /// The optional first column of `touch_points.csv`: which physical location a touch
 /// touched.
 pub const LOCATION_COLUMN: &str = "location";
@@ -46,6 +50,9 @@ pub struct Capture {
     pub base_from_flange: Isometry3<f64>,
     /// `T_camera_target`, columns `ctx..cqw`, when the row gives the board pose directly.
     pub camera_from_target: Option<Isometry3<f64>>,
+    /// The id (in the manifest's `targets`) of the target the capture saw;
+    /// `None` for the manifest's `target`. Column `target`.
+    pub target: Option<String>,
 }
 
 /// One robot's captures.
@@ -71,11 +78,12 @@ pub struct TouchPair {
 pub(crate) fn read_captures(
     file: &Path,
     robot: &RobotManifest,
+    targets: &BTreeMap<String, Target>,
     robot_dir: &Path,
 ) -> Result<Vec<Capture>, DatasetError> {
     let bytes = crate::read_bytes(file, "each robot folder must contain captures.csv")?;
     let table = table::parse_table(&bytes, file)?;
-    parse_captures(&table, robot, Some(robot_dir))
+    parse_captures(&table, robot, targets, Some(robot_dir))
 }
 
 /// Parses and checks the rows of a captures table. With `robot_dir`, also checks that
@@ -83,11 +91,17 @@ pub(crate) fn read_captures(
 pub(crate) fn parse_captures(
     table: &Table,
     robot: &RobotManifest,
+    targets: &BTreeMap<String, Target>,
     robot_dir: Option<&Path>,
 ) -> Result<Vec<Capture>, DatasetError> {
     let file = table.file.as_path();
-    let columns = table::map_columns(table, &CAPTURE_COLUMNS, &CAMERA_POSE_COLUMNS)?;
-    let mut checker = CaptureChecker::new(file, robot);
+    let columns = table::map_columns_optional(
+        table,
+        &CAPTURE_COLUMNS,
+        &CAMERA_POSE_COLUMNS,
+        &[TARGET_COLUMN],
+    )?;
+    let mut checker = CaptureChecker::new(file, robot, targets);
     let mut captures = Vec::with_capacity(table.rows.len());
     for row in &table.rows {
         table::check_field_count(table, row)?;
@@ -116,12 +130,17 @@ pub(crate) fn parse_captures(
                 }
             }
         };
+        let target = columns.optional[0]
+            .map(|i| row.fields[i].trim())
+            .filter(|t| !t.is_empty())
+            .map(str::to_owned);
         let capture = Capture {
             row: row.row,
             image,
             depth,
             base_from_flange,
             camera_from_target,
+            target,
         };
         checker.check(row.row, Some(row.line), &capture)?;
         if let Some(dir) = robot_dir {
@@ -172,15 +191,22 @@ fn check_files(file: &Path, dir: &Path, row: &Row, capture: &Capture) -> Result<
 pub(crate) struct CaptureChecker<'a> {
     file: &'a Path,
     robot: &'a RobotManifest,
+    /// The manifest's further targets, which a capture's `target` must name.
+    targets: &'a BTreeMap<String, Target>,
     /// Normalised image path to the row that first used it.
     seen: HashMap<PathBuf, usize>,
 }
 
 impl<'a> CaptureChecker<'a> {
-    pub fn new(file: &'a Path, robot: &'a RobotManifest) -> Self {
+    pub fn new(
+        file: &'a Path,
+        robot: &'a RobotManifest,
+        targets: &'a BTreeMap<String, Target>,
+    ) -> Self {
         CaptureChecker {
             file,
             robot,
+            targets,
             seen: HashMap::new(),
         }
     }
@@ -196,6 +222,19 @@ impl<'a> CaptureChecker<'a> {
         pose::check_isometry(&c.base_from_flange, &FLANGE_FIELDS, |f| at(&f))?;
         if let Some(cam) = &c.camera_from_target {
             pose::check_isometry(cam, &CAMERA_FIELDS, |f| at(&f))?;
+        }
+        if let Some(target) = &c.target
+            && !self.targets.contains_key(target)
+        {
+            let known = if self.targets.is_empty() {
+                "it lists none; an empty cell means `target`".to_owned()
+            } else {
+                self.targets.keys().cloned().collect::<Vec<_>>().join(", ")
+            };
+            return Err(DatasetError::UnknownTarget {
+                at: at(TARGET_COLUMN),
+                reason: format!("target `{target}` is not in dataset.json's `targets` ({known})"),
+            });
         }
         if let Some(image) = &c.image {
             check_path(image, &IMAGE_EXTENSIONS, || at("image"))?;
@@ -343,6 +382,7 @@ pub(crate) fn capture_cells(
     row: usize,
     c: &Capture,
     with_camera_pose: bool,
+    with_target: bool,
 ) -> Result<Vec<String>, DatasetError> {
     let path_cell = |p: &Option<PathBuf>, field: &str| -> Result<String, DatasetError> {
         match p {
@@ -364,6 +404,9 @@ pub(crate) fn capture_cells(
             None => cells.extend(std::iter::repeat_n(String::new(), 7)),
         }
     }
+    if with_target {
+        cells.push(c.target.clone().unwrap_or_default());
+    }
     Ok(cells)
 }
 
@@ -377,7 +420,7 @@ mod tests {
 
     fn parse(text: &str) -> Result<Vec<Capture>, DatasetError> {
         let t = table::parse_table(text.as_bytes(), Path::new("/d/robot1/captures.csv")).unwrap();
-        parse_captures(&t, &robot(), None)
+        parse_captures(&t, &robot(), &BTreeMap::new(), None)
     }
 
     #[test]
@@ -426,7 +469,7 @@ mod tests {
             Path::new("/c.csv"),
         )
         .unwrap();
-        let e = parse_captures(&t, &r, None).unwrap_err();
+        let e = parse_captures(&t, &r, &BTreeMap::new(), None).unwrap_err();
         assert!(e.to_string().contains("without an image"), "{e}");
     }
 }

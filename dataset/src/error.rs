@@ -251,6 +251,11 @@ pub enum DatasetError {
     #[error("{at}: robot `{robot}` is not in dataset.json")]
     UnknownRobot { at: Location, robot: String },
 
+    /// A capture names a target that dataset.json's `targets` does not list;
+    /// `reason` quotes it and the ids that are listed.
+    #[error("{at}: {reason}")]
+    UnknownTarget { at: Location, reason: String },
+
     /// A key of `ground_truth.json` or `reference.json` that starts like a robot's base
     /// (`T_base1_base`) but is not `T_base1_base2` or `T_base1_base<n>` for a further
     /// robot `n` (3 up to the number of robots in dataset.json); `reason` quotes the key.
@@ -297,6 +302,7 @@ impl DatasetError {
             | DepthWithoutUnit { at, .. }
             | BadPath { at, .. }
             | UnknownRobot { at, .. }
+            | UnknownTarget { at, .. }
             | UnknownBaseKey { at, .. }
             | Unsupported { at, .. } => Some(at),
         }

@@ -120,6 +120,7 @@ fn pose_only(
         depth: None,
         base_from_flange,
         camera_from_target: Some(camera_from_target),
+        target: None,
     }
 }
 

@@ -134,11 +134,20 @@ impl Dataset {
         let root = absolute(dir);
         let manifest = Manifest::load(&root)?;
         let manifest_file = root.join(MANIFEST_FILE);
-        if let Target::Multimarker { config, .. } = &manifest.target {
+        let all_targets = std::iter::once(("target".to_owned(), &manifest.target)).chain(
+            manifest
+                .targets
+                .iter()
+                .map(|(id, t)| (format!("targets.{id}"), t)),
+        );
+        for (at, target) in all_targets {
+            let Target::Multimarker { config, .. } = target else {
+                continue;
+            };
             let full = root.join(config);
             if !full.is_file() {
                 return Err(DatasetError::InvalidTarget {
-                    at: Location::field(&manifest_file, "target.config"),
+                    at: Location::field(&manifest_file, format!("{at}.config")),
                     reason: format!("multimarker file {} does not exist", full.display()),
                 });
             }
@@ -152,7 +161,12 @@ impl Dataset {
                     folder,
                 });
             }
-            let captures = captures::read_captures(&folder.join(CAPTURES_FILE), robot, &folder)?;
+            let captures = captures::read_captures(
+                &folder.join(CAPTURES_FILE),
+                robot,
+                &manifest.targets,
+                &folder,
+            )?;
             robots.push(RobotData {
                 id: robot.id.clone(),
                 captures,
@@ -216,16 +230,26 @@ impl Dataset {
         let mut files: Vec<(PathBuf, Vec<u8>)> = vec![];
         for (robot, data) in self.manifest.robots.iter().zip(&self.robots) {
             let file = root.join(&robot.id).join(CAPTURES_FILE);
-            let mut checker = captures::CaptureChecker::new(&file, robot);
+            let mut checker = captures::CaptureChecker::new(&file, robot, &self.manifest.targets);
             let with_camera = data.captures.iter().any(|c| c.camera_from_target.is_some());
+            let with_target = data.captures.iter().any(|c| c.target.is_some());
             let mut header: Vec<&str> = CAPTURE_COLUMNS.to_vec();
             if with_camera {
                 header.extend(CAMERA_POSE_COLUMNS);
             }
+            if with_target {
+                header.push(captures::TARGET_COLUMN);
+            }
             let mut rows = Vec::with_capacity(data.captures.len());
             for (i, c) in data.captures.iter().enumerate() {
                 checker.check(i + 1, None, c)?;
-                rows.push(captures::capture_cells(&file, i + 1, c, with_camera)?);
+                rows.push(captures::capture_cells(
+                    &file,
+                    i + 1,
+                    c,
+                    with_camera,
+                    with_target,
+                )?);
             }
             let bytes = table::render(&file, &header, &rows)?;
             files.push((file, bytes));
@@ -341,6 +365,31 @@ impl Dataset {
     }
 
     /// The multimarker file of a multimarker target, absolute.
+    /// Every target of the dataset: the manifest's `target` first (id `None`),
+    /// then its `targets` by id. A capture's place in this list is its target's
+    /// index in a joint problem ([`Dataset::target_index`]).
+    pub fn all_targets(&self) -> Vec<(Option<&str>, &Target)> {
+        std::iter::once((None, &self.manifest.target))
+            .chain(
+                self.manifest
+                    .targets
+                    .iter()
+                    .map(|(id, t)| (Some(id.as_str()), t)),
+            )
+            .collect()
+    }
+
+    /// The index in [`Dataset::all_targets`] of the target a capture saw (a
+    /// loaded dataset's captures name only listed targets; an unlisted one
+    /// counts as the manifest's `target`).
+    pub fn target_index(&self, capture: &Capture) -> usize {
+        capture
+            .target
+            .as_deref()
+            .and_then(|id| self.manifest.targets.keys().position(|k| k == id))
+            .map_or(0, |i| i + 1)
+    }
+
     pub fn multimarker_config_path(&self) -> Option<PathBuf> {
         match &self.manifest.target {
             Target::Multimarker { config, .. } => Some(absolute(&self.root.join(config))),

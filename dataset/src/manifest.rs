@@ -12,7 +12,7 @@
 //! Unknown extra fields are accepted and ignored, so that newer writers can add optional
 //! information without breaking older readers; they are not preserved on rewrite.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -33,6 +33,11 @@ pub struct Manifest {
     #[serde(default)]
     pub license: String,
     pub target: Target,
+    /// Further targets by id, for robots that do not all see `target`: a
+    /// capture names its target in the `target` column of `captures.csv`
+    /// (empty: `target`). A project extension; left out when empty.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub targets: BTreeMap<String, Target>,
     /// In the order that defines robot 1, robot 2, ...
     pub robots: Vec<RobotManifest>,
 }
@@ -140,6 +145,7 @@ impl Manifest {
             source: String::new(),
             license: String::new(),
             target,
+            targets: BTreeMap::new(),
             robots,
         }
     }
@@ -188,32 +194,17 @@ impl Manifest {
             }
         }
         if let Some(target) = object.get("target") {
-            if !target.is_object() {
+            check_kind(target, "target", file)?;
+        }
+        if let Some(targets) = object.get("targets") {
+            let Some(targets) = targets.as_object() else {
                 return Err(DatasetError::InvalidTarget {
-                    at: Location::field(file, "target"),
-                    reason: format!("target must be an object with a `kind`, found {target}"),
+                    at: Location::field(file, "targets"),
+                    reason: format!("targets must be an object of targets by id, found {targets}"),
                 });
-            }
-            match target.get("kind") {
-                Some(serde_json::Value::String(kind)) if TARGET_KINDS.contains(&kind.as_str()) => {}
-                Some(serde_json::Value::String(kind)) => {
-                    return Err(DatasetError::UnknownTargetKind {
-                        at: Location::field(file, "target.kind"),
-                        kind: kind.clone(),
-                    });
-                }
-                Some(other) => {
-                    return Err(DatasetError::UnknownTargetKind {
-                        at: Location::field(file, "target.kind"),
-                        kind: other.to_string(),
-                    });
-                }
-                None => {
-                    return Err(DatasetError::InvalidTarget {
-                        at: Location::field(file, "target.kind"),
-                        reason: "`kind` is missing".into(),
-                    });
-                }
+            };
+            for (id, target) in targets {
+                check_kind(target, &format!("targets.{id}"), file)?;
             }
         }
         crate::parse_json(text, file)
@@ -234,6 +225,15 @@ impl Manifest {
             });
         }
         self.target.validate(file)?;
+        for (id, target) in &self.targets {
+            if let Some(reason) = bad_robot_id(id) {
+                return Err(DatasetError::InvalidTarget {
+                    at: Location::field(file, format!("targets.{id}")),
+                    reason: format!("target id `{id}` {reason}"),
+                });
+            }
+            target.validate_at(file, &format!("targets.{id}"))?;
+        }
         if self.robots.is_empty() {
             return Err(DatasetError::InvalidManifest {
                 at: Location::field(file, "robots"),
@@ -277,6 +277,38 @@ impl Manifest {
     pub fn robot(&self, id: &str) -> Option<&RobotManifest> {
         self.robots.iter().find(|r| r.id == id)
     }
+}
+
+/// The untyped check of one target's `kind` (at JSON path `at`).
+fn check_kind(target: &serde_json::Value, at: &str, file: &Path) -> Result<(), DatasetError> {
+    if !target.is_object() {
+        return Err(DatasetError::InvalidTarget {
+            at: Location::field(file, at),
+            reason: format!("target must be an object with a `kind`, found {target}"),
+        });
+    }
+    match target.get("kind") {
+        Some(serde_json::Value::String(kind)) if TARGET_KINDS.contains(&kind.as_str()) => {}
+        Some(serde_json::Value::String(kind)) => {
+            return Err(DatasetError::UnknownTargetKind {
+                at: Location::field(file, format!("{at}.kind")),
+                kind: kind.clone(),
+            });
+        }
+        Some(other) => {
+            return Err(DatasetError::UnknownTargetKind {
+                at: Location::field(file, format!("{at}.kind")),
+                kind: other.to_string(),
+            });
+        }
+        None => {
+            return Err(DatasetError::InvalidTarget {
+                at: Location::field(file, format!("{at}.kind")),
+                reason: "`kind` is missing".into(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Why `id` cannot name a robot folder, if it cannot.
@@ -323,8 +355,8 @@ fn at_least(
     Ok(())
 }
 
-fn known_dictionary(name: &str, needed: u64, file: &Path) -> Result<(), DatasetError> {
-    let at = || Location::field(file, "target.dictionary");
+fn known_dictionary(name: &str, needed: u64, file: &Path, field: &str) -> Result<(), DatasetError> {
+    let at = || Location::field(file, field);
     let Some(size) = dictionary_size(name) else {
         return Err(DatasetError::InvalidTarget {
             at: at(),
@@ -348,6 +380,13 @@ fn known_dictionary(name: &str, needed: u64, file: &Path) -> Result<(), DatasetE
 impl Target {
     /// Range-checks the board parameters; `file` is only used in errors.
     pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
+        self.validate_at(file, "target")
+    }
+
+    /// [`Target::validate`] of the target at JSON path `at` (`target`, or
+    /// `targets.<id>` for a further target).
+    pub fn validate_at(&self, file: &Path, at: &str) -> Result<(), DatasetError> {
+        let f = |name: &str| format!("{at}.{name}");
         match self {
             Target::Checkerboard {
                 inner_corners,
@@ -357,10 +396,10 @@ impl Target {
                     *inner_corners,
                     2,
                     file,
-                    "target.inner_corners",
+                    &f("inner_corners"),
                     "inner corners",
                 )?;
-                positive(*square_m, file, "target.square_m")
+                positive(*square_m, file, &f("square_m"))
             }
             Target::Charuco {
                 squares,
@@ -368,19 +407,19 @@ impl Target {
                 marker_m,
                 dictionary,
             } => {
-                at_least(*squares, 2, file, "target.squares", "squares")?;
-                positive(*square_m, file, "target.square_m")?;
-                positive(*marker_m, file, "target.marker_m")?;
+                at_least(*squares, 2, file, &f("squares"), "squares")?;
+                positive(*square_m, file, &f("square_m"))?;
+                positive(*marker_m, file, &f("marker_m"))?;
                 if marker_m >= square_m {
                     return Err(DatasetError::InvalidTarget {
-                        at: Location::field(file, "target.marker_m"),
+                        at: Location::field(file, f("marker_m")),
                         reason: format!(
                             "marker_m {marker_m} is not smaller than square_m {square_m}; a ChArUco marker sits inside its square"
                         ),
                     });
                 }
                 let markers = u64::from(squares[0]) * u64::from(squares[1]) / 2;
-                known_dictionary(dictionary, markers, file)
+                known_dictionary(dictionary, markers, file, &f("dictionary"))
             }
             Target::ArucoGrid {
                 markers,
@@ -389,14 +428,14 @@ impl Target {
                 dictionary,
                 first_id,
             } => {
-                at_least(*markers, 1, file, "target.markers", "markers")?;
-                positive(*marker_m, file, "target.marker_m")?;
-                positive(*separation_m, file, "target.separation_m")?;
+                at_least(*markers, 1, file, &f("markers"), "markers")?;
+                positive(*marker_m, file, &f("marker_m"))?;
+                positive(*separation_m, file, &f("separation_m"))?;
                 let last = u64::from(*first_id) + u64::from(markers[0]) * u64::from(markers[1]);
-                known_dictionary(dictionary, last, file)
+                known_dictionary(dictionary, last, file, &f("dictionary"))
             }
             Target::Multimarker { config, dictionary } => {
-                let at = || Location::field(file, "target.config");
+                let at = || Location::field(file, f("config"));
                 if config.as_os_str().is_empty() {
                     return Err(DatasetError::InvalidTarget {
                         at: at(),
@@ -420,7 +459,7 @@ impl Target {
                 }
                 if dictionary.trim().is_empty() {
                     return Err(DatasetError::InvalidTarget {
-                        at: Location::field(file, "target.dictionary"),
+                        at: Location::field(file, f("dictionary")),
                         reason: "dictionary is empty".into(),
                     });
                 }

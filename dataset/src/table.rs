@@ -104,6 +104,8 @@ pub(crate) struct Columns {
     pub required: Vec<usize>,
     /// Index of each column of the optional block, when the block is present.
     pub block: Option<Vec<usize>>,
+    /// Index of each optional single column, when present.
+    pub optional: Vec<Option<usize>>,
 }
 
 /// Maps the header onto the expected columns.
@@ -112,10 +114,23 @@ pub(crate) fn map_columns(
     required: &[&str],
     block: &[&str],
 ) -> Result<Columns, DatasetError> {
+    map_columns_optional(table, required, block, &[])
+}
+
+/// [`map_columns`] with optional single columns, anywhere in the header.
+pub(crate) fn map_columns_optional(
+    table: &Table,
+    required: &[&str],
+    block: &[&str],
+    optional: &[&str],
+) -> Result<Columns, DatasetError> {
     let expected = || {
         let mut s = required.join(",");
         if !block.is_empty() {
             s.push_str(&format!(" (optionally followed by {})", block.join(",")));
+        }
+        for name in optional {
+            s.push_str(&format!(" (and optionally {name})"));
         }
         s
     };
@@ -132,7 +147,10 @@ pub(crate) fn map_columns(
     }
     let mut index: HashMap<&str, usize> = HashMap::new();
     for (i, name) in table.header.iter().enumerate() {
-        if !required.contains(&name.as_str()) && !block.contains(&name.as_str()) {
+        if !required.contains(&name.as_str())
+            && !block.contains(&name.as_str())
+            && !optional.contains(&name.as_str())
+        {
             return Err(DatasetError::BadHeader {
                 at: at(Some(name)),
                 reason: format!(
@@ -184,6 +202,7 @@ pub(crate) fn map_columns(
     Ok(Columns {
         required: required_idx,
         block: block_idx,
+        optional: optional.iter().map(|n| index.get(n).copied()).collect(),
     })
 }
 

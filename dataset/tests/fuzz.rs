@@ -152,6 +152,7 @@ proptest! {
                 depth: None,
                 base_from_flange: pose,
                 camera_from_target: Some(pose.inverse()),
+                target: None,
             }],
         };
         let out = tempfile::tempdir().unwrap();

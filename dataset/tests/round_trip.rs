@@ -70,6 +70,7 @@ fn dataset(target: Target) -> Dataset {
             depth: (i % 2 == 0).then(|| PathBuf::from(format!("depth/{i:03}.png"))),
             base_from_flange: iso(i as f64),
             camera_from_target: (i == 3).then(|| iso(40.0)),
+            target: None,
         })
         .collect();
     let captures2 = (0..4)
@@ -79,6 +80,7 @@ fn dataset(target: Target) -> Dataset {
             depth: None,
             base_from_flange: iso(10.0 + i as f64),
             camera_from_target: (i > 0).then(|| iso(20.0 + i as f64)),
+            target: None,
         })
         .collect();
     Dataset {
@@ -404,6 +406,7 @@ fn three_robots() -> Dataset {
                 depth: None,
                 base_from_flange: iso(50.0 + i as f64),
                 camera_from_target: None,
+                target: None,
             })
             .collect(),
     });

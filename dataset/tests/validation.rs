@@ -91,6 +91,73 @@ fn wrong_format() {
     assert!(matches!(e, E::WrongFormat { .. }), "{e}");
 }
 
+const TARGET_LINE: &str =
+    r#""target": { "kind": "checkerboard", "inner_corners": [9, 6], "square_m": 0.025 },"#;
+
+fn with_targets(fx: &Fixture, targets: &str) {
+    fx.edit(
+        M,
+        TARGET_LINE,
+        &format!("{TARGET_LINE}\n  \"targets\": {targets},"),
+    );
+}
+
+#[test]
+fn further_targets_and_the_target_column_are_read() {
+    let fx = Fixture::new();
+    with_targets(
+        &fx,
+        r#"{ "side": { "kind": "checkerboard", "inner_corners": [7, 5], "square_m": 0.03 } }"#,
+    );
+    fx.edit(C1, "tx,ty,tz,qx,qy,qz,qw", "tx,ty,tz,qx,qy,qz,qw,target");
+    let text = fs::read_to_string(fx.path(C1)).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+    lines[1].push(',');
+    lines[2].push_str(",side");
+    fx.write(C1, &(lines.join("\n") + "\n"));
+    let ds = fx.load().expect("loads");
+    assert_eq!(ds.manifest.targets.len(), 1);
+    let caps = &ds.robots[0].captures;
+    assert_eq!(caps[0].target, None);
+    assert_eq!(caps[1].target.as_deref(), Some("side"));
+    assert_eq!(
+        (ds.target_index(&caps[0]), ds.target_index(&caps[1])),
+        (0, 1)
+    );
+}
+
+#[test]
+fn a_further_target_of_unknown_kind_is_named() {
+    let fx = Fixture::new();
+    with_targets(&fx, r#"{ "side": { "kind": "dartboard" } }"#);
+    let e = fx.load_err(M, &["field `targets.side.kind`", "dartboard"]);
+    assert!(matches!(e, E::UnknownTargetKind { .. }), "{e}");
+}
+
+#[test]
+fn a_further_target_with_a_bad_size_is_named() {
+    let fx = Fixture::new();
+    with_targets(
+        &fx,
+        r#"{ "side": { "kind": "checkerboard", "inner_corners": [9, 6], "square_m": -1 } }"#,
+    );
+    let e = fx.load_err(M, &["field `targets.side.square_m`", "positive"]);
+    assert!(matches!(e, E::InvalidTarget { .. }), "{e}");
+}
+
+#[test]
+fn a_capture_of_an_unlisted_target_is_refused() {
+    let fx = Fixture::new();
+    fx.edit(C1, "tx,ty,tz,qx,qy,qz,qw", "tx,ty,tz,qx,qy,qz,qw,target");
+    let text = fs::read_to_string(fx.path(C1)).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+    lines[1].push_str(",side");
+    lines[2].push(',');
+    fx.write(C1, &(lines.join("\n") + "\n"));
+    let e = fx.load_err(C1, &["row 1", "field `target`", "`side`", "lists none"]);
+    assert!(matches!(e, E::UnknownTarget { .. }), "{e}");
+}
+
 // --- captures.csv header and cells ---------------------------------------------------
 
 #[test]

@@ -90,6 +90,17 @@ pub enum PipelineError {
     Vision(#[from] VisionError),
     #[error("{0}")]
     Unsupported(String),
+    /// Robots that no chain of shared targets links to the reference robot.
+    #[error(
+        "{} cannot be placed in {reference}'s base: no target they see is seen by {reference} \
+         or by a robot linked to it (each target links the robots that see it; \
+         a robot that sees targets of both groups joins them)",
+        cut_off.join(", ")
+    )]
+    Disconnected {
+        reference: String,
+        cut_off: Vec<String>,
+    },
     /// The pre-fit checks found that one robot's flange poses and board poses do
     /// not belong together ([`b2b_calib::sanity`]): quaternion order, units, rows.
     #[error("{captures}: robot {robot}: {problem}")]
@@ -417,6 +428,16 @@ impl TargetSpec {
         Self::from_manifest(&ds.manifest.target, &ds.root.join("dataset.json"))
     }
 
+    /// Every target of a dataset, in [`Dataset::all_targets`] order (the
+    /// manifest's `target` first).
+    pub fn all_from_dataset(ds: &Dataset) -> Result<Vec<Self>, PipelineError> {
+        let manifest = ds.root.join("dataset.json");
+        ds.all_targets()
+            .into_iter()
+            .map(|(_, t)| Self::from_manifest(t, &manifest))
+            .collect()
+    }
+
     /// A target as `dataset.json` describes it (the same JSON in a live agent's
     /// setup file), read from `manifest`: a multimarker file's relative path is
     /// taken from the folder of `manifest`, which errors also name.
@@ -661,8 +682,12 @@ impl TargetSpec {
 pub struct RobotSetup {
     pub robot: String,
     pub camera: CameraModel,
+    /// The dataset's `target`.
     pub target: TargetSpec,
     board_points: Vec<Point3<f64>>,
+    /// The dataset's further `targets` and their points, in
+    /// [`Dataset::all_targets`] order after the first.
+    others: Vec<(TargetSpec, Vec<Point3<f64>>)>,
 }
 
 impl RobotSetup {
@@ -673,14 +698,31 @@ impl RobotSetup {
             robot: robot.to_owned(),
             manifest: ds.root.join("dataset.json"),
         })?;
-        let target = TargetSpec::from_dataset(ds)?;
+        let mut targets = TargetSpec::all_from_dataset(ds)?.into_iter();
+        let target = targets
+            .next()
+            .ok_or_else(|| PipelineError::Unsupported("a dataset without a target".into()))?;
         let board_points = target.all_points();
         Ok(RobotSetup {
             robot: robot.to_owned(),
             camera,
             target,
             board_points,
+            others: targets
+                .map(|t| {
+                    let points = t.all_points();
+                    (t, points)
+                })
+                .collect(),
         })
+    }
+
+    /// Target `index` ([`Dataset::target_index`]) and its points.
+    fn target_at(&self, index: usize) -> (&TargetSpec, &[Point3<f64>]) {
+        match index.checked_sub(1).and_then(|k| self.others.get(k)) {
+            Some((t, points)) => (t, points),
+            None => (&self.target, &self.board_points),
+        }
     }
 }
 
@@ -712,13 +754,14 @@ fn observe_capture_impl(
         row: Some(cap.row),
         reason,
     };
+    let target_index = ds.target_index(cap);
+    let (target, board_points) = setup.target_at(target_index);
     if let (None, Some(camera_from_target)) = (&cap.image, cap.camera_from_target) {
-        let pixels: Vec<_> = setup
-            .board_points
+        let pixels: Vec<_> = board_points
             .iter()
             .filter_map(|p| setup.camera.project(&(camera_from_target * p)))
             .collect();
-        if pixels.len() != setup.board_points.len() {
+        if pixels.len() != board_points.len() {
             return Err(reject(
                 "target behind the camera in the given T_camera_target".into(),
             ));
@@ -729,11 +772,12 @@ fn observe_capture_impl(
             camera_from_target,
             board: BoardCapture {
                 base_from_flange: cap.base_from_flange,
-                target_points: setup.board_points.clone(),
+                target_points: board_points.to_vec(),
                 pixels,
+                target: target_index,
             },
             pnp_rms_px: 0.0,
-            residuals_px: vec![0.0; setup.board_points.len()],
+            residuals_px: vec![0.0; board_points.len()],
         });
     }
     let Some(path) = ds.image_path(robot, cap) else {
@@ -746,15 +790,18 @@ fn observe_capture_impl(
             observe(
                 &img,
                 &setup.camera,
-                &setup.target,
+                target,
                 cap.base_from_flange,
                 up_to_symmetry,
             )
         })
-        .map(|o| Observation {
-            row: cap.row,
-            image: image.clone(),
-            ..o
+        .map(|mut o| {
+            o.board.target = target_index;
+            Observation {
+                row: cap.row,
+                image: image.clone(),
+                ..o
+            }
         })
         .map_err(|e| reject(error_chain(&e)))
 }
@@ -781,6 +828,7 @@ pub fn observe(
             base_from_flange,
             target_points: detection.target_points,
             pixels: detection.pixels,
+            target: 0,
         },
         pnp_rms_px: pose.rms_px,
         residuals_px: pose.residuals_px,
@@ -799,6 +847,18 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
     let start = Instant::now();
     let captures = ds.root.join(robot).join(b2b_dataset::CAPTURES_FILE);
     if camera_of(ds, robot)?.is_none() {
+        if let Some(cap) = ds
+            .robot(robot)
+            .and_then(|d| d.captures.iter().find(|c| c.target.is_some()))
+        {
+            return Err(PipelineError::Unsupported(format!(
+                "{robot} has no intrinsics in dataset.json and row {} of its captures.csv sees \
+                 target `{}`: intrinsics are estimated from the captures of the dataset's `target` \
+                 only; give this robot's `camera` block",
+                cap.row,
+                cap.target.as_deref().unwrap_or_default()
+            )));
+        }
         let obs = observe_uncalibrated(ds, robot, TargetSpec::from_dataset(ds)?, start)?;
         return screen_observations(&obs, &captures.display().to_string()).map(|(o, _)| o);
     }
@@ -822,16 +882,30 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
         stage.step();
     }
     drop(stage);
-    let symmetry = setup.target.symmetry();
-    if !symmetry.is_trivial() {
-        observations = resolve_symmetric_labelling(
+    // A symmetric target's labelling is resolved over the robot's views of
+    // that target.
+    let targets = 1 + setup.others.len();
+    let mut resolved = Vec::with_capacity(observations.len());
+    for t in 0..targets {
+        let (spec, _) = setup.target_at(t);
+        let (mine, rest): (Vec<Observation>, Vec<Observation>) =
+            observations.into_iter().partition(|o| o.board.target == t);
+        observations = rest;
+        let symmetry = spec.symmetry();
+        if symmetry.is_trivial() || mine.is_empty() {
+            resolved.extend(mine);
+            continue;
+        }
+        resolved.extend(resolve_symmetric_labelling(
             robot,
-            &setup.target.describe(),
+            &spec.describe(),
             &symmetry,
-            observations,
+            mine,
             &mut rejected,
-        )?;
+        )?);
     }
+    resolved.sort_by_key(|o| o.row);
+    let observations = resolved;
     let obs = RobotObservations {
         robot: robot.to_owned(),
         camera: setup.camera,
@@ -875,49 +949,74 @@ pub fn screen_observations(
     obs: &RobotObservations,
     captures: &str,
 ) -> Result<(RobotObservations, SanityReport), PipelineError> {
-    let base_from_flange: Vec<Iso3> = obs
-        .observations
-        .iter()
-        .map(|o| o.board.base_from_flange)
-        .collect();
-    let camera_from_target: Vec<Iso3> = obs
-        .observations
-        .iter()
-        .map(|o| o.camera_from_target)
-        .collect();
-    let report = check_pose_pairs(
-        &base_from_flange,
-        &camera_from_target,
-        &SanityOptions::default(),
-    )
-    .map_err(|problem| PipelineError::CapturesInconsistent {
-        robot: obs.robot.clone(),
-        captures: captures.to_owned(),
-        problem,
-    })?;
+    // Motions pair captures of one target: each target's captures are checked
+    // alone. The report is that of the target seen most.
+    let mut targets: Vec<usize> = obs.observations.iter().map(|o| o.board.target).collect();
+    targets.sort_unstable();
+    targets.dedup();
+    if targets.is_empty() {
+        targets.push(0);
+    }
+    let mut report: Option<SanityReport> = None;
+    let mut suspects: Vec<(usize, String)> = Vec::new();
+    for t in targets {
+        let group: Vec<usize> = (0..obs.observations.len())
+            .filter(|k| obs.observations[*k].board.target == t)
+            .collect();
+        let base_from_flange: Vec<Iso3> = group
+            .iter()
+            .map(|k| obs.observations[*k].board.base_from_flange)
+            .collect();
+        let camera_from_target: Vec<Iso3> = group
+            .iter()
+            .map(|k| obs.observations[*k].camera_from_target)
+            .collect();
+        let checked = check_pose_pairs(
+            &base_from_flange,
+            &camera_from_target,
+            &SanityOptions::default(),
+        )
+        .map_err(|problem| PipelineError::CapturesInconsistent {
+            robot: obs.robot.clone(),
+            captures: captures.to_owned(),
+            problem,
+        })?;
+        suspects.extend(
+            checked
+                .suspects
+                .iter()
+                .map(|s| (group[s.index], s.reason.clone())),
+        );
+        if report
+            .as_ref()
+            .is_none_or(|r| checked.captures > r.captures)
+        {
+            report = Some(checked);
+        }
+    }
+    let report = report.unwrap_or_else(|| unreachable!("at least one target is checked"));
     let mut out = obs.clone();
-    if !report.suspects.is_empty() {
-        let bad: Vec<usize> = report.suspects.iter().map(|s| s.index).collect();
+    if !suspects.is_empty() {
         out.observations = obs
             .observations
             .iter()
             .enumerate()
-            .filter(|(k, _)| !bad.contains(k))
+            .filter(|(k, _)| !suspects.iter().any(|(i, _)| i == k))
             .map(|(_, o)| o.clone())
             .collect();
-        for s in &report.suspects {
-            let o = &obs.observations[s.index];
+        suspects.sort_by_key(|(i, _)| *i);
+        for (index, reason) in &suspects {
+            let o = &obs.observations[*index];
             tracing::warn!(
                 robot = obs.robot.as_str(),
                 row = o.row,
-                "capture rejected: {}",
-                s.reason
+                "capture rejected: {reason}"
             );
             out.rejected.push(RejectedCapture {
                 robot: obs.robot.clone(),
                 image: o.image.clone(),
                 row: Some(o.row),
-                reason: s.reason.clone(),
+                reason: reason.clone(),
             });
         }
     }
@@ -1134,6 +1233,7 @@ fn observe_uncalibrated(
                     base_from_flange: cap.base_from_flange,
                     target_points: det.target_points,
                     pixels: det.pixels,
+                    target: 0,
                 },
                 pnp_rms_px: pose.rms_px,
                 residuals_px: pose.residuals_px,
@@ -1733,10 +1833,24 @@ fn joint_bases(
         ));
     }
     let solve_start = Instant::now();
-    let screened = robots
+    let mut screened = robots
         .iter()
         .map(|o| screen_observations(o, &format!("captures of robot {}", o.robot)).map(|s| s.0))
         .collect::<Result<Vec<_>, _>>()?;
+    // The targets no robot saw are left out of the problem (a dataset may list
+    // more than one operation uses): the others are numbered densely.
+    let mut seen_targets: Vec<usize> = screened
+        .iter()
+        .flat_map(|o| o.observations.iter().map(|o| o.board.target))
+        .collect();
+    seen_targets.sort_unstable();
+    seen_targets.dedup();
+    for o in screened.iter_mut().flat_map(|o| o.observations.iter_mut()) {
+        o.board.target = seen_targets
+            .binary_search(&o.board.target)
+            .unwrap_or_else(|_| unreachable!("every seen target is listed"));
+    }
+    let main_target_seen = seen_targets.first() == Some(&0);
     let inputs: Vec<(Vec<BoardCapture>, Vec<Iso3>)> = screened
         .iter()
         .map(|o| {
@@ -1761,7 +1875,13 @@ fn joint_bases(
     let ids: Vec<&str> = screened.iter().map(|o| o.robot.as_str()).collect();
     let all = ids.join("+");
     let capture_refs: Vec<&RobotCaptures<'_>> = captures.iter().collect();
-    let run = estimate_bases(&capture_refs, options).map_err(calib(&all))?;
+    let run = estimate_bases(&capture_refs, options).map_err(|e| match e {
+        CalibError::Disconnected { cut_off } => PipelineError::Disconnected {
+            reference: ids[0].to_owned(),
+            cut_off: cut_off.iter().map(|r| ids[*r].to_owned()).collect(),
+        },
+        e => calib(&all)(e),
+    })?;
     for (k, split) in run.splits.iter().enumerate() {
         if let Some(split) = split.filter(SplitCheck::beyond_chance) {
             let what = if k == 0 {
@@ -1773,11 +1893,43 @@ fn joint_bases(
         }
     }
     let joint = &run.estimate;
-    let centre_in_ref = joint.ref_from_target * board_centre;
+    let centres_in_ref = target_centres_in_ref(
+        &screened,
+        &joint.ref_from_targets,
+        main_target_seen.then_some(board_centre),
+    );
+    let seen: Vec<Vec<usize>> = screened
+        .iter()
+        .map(|o| {
+            let mut t: Vec<usize> = o.observations.iter().map(|o| o.board.target).collect();
+            t.sort_unstable();
+            t.dedup();
+            t
+        })
+        .collect();
     // The predicted touch error of robot b's base in robot a's, over the
-    // workspace about the target (in a's base).
+    // workspace about the target both see (in a's base); with several targets
+    // and none shared, about the middle of the targets either sees.
     let pair = |a: usize, b: usize| {
         let (a_from_b, cov) = joint.pair(a, b);
+        let shared: Vec<usize> = seen[a]
+            .iter()
+            .copied()
+            .filter(|t| seen[b].contains(t))
+            .collect();
+        let around = if shared.is_empty() {
+            let mut either = seen[a].clone();
+            either.extend(&seen[b]);
+            either.sort_unstable();
+            either.dedup();
+            either
+        } else {
+            shared
+        };
+        let centre_in_ref = around
+            .iter()
+            .fold(Point3::origin(), |acc, t| acc + centres_in_ref[*t].coords)
+            / around.len().max(1) as f64;
         let centre = joint.base(a).inverse() * centre_in_ref;
         let (mean, p95) = predicted_error(&cov, &workspace_points(&centre), 0.0);
         (a_from_b, cov, PredictedError { mean, p95 })
@@ -1861,6 +2013,34 @@ fn joint_bases(
         warnings: Vec::new(),
     };
     Ok((result, run.estimate.cameras))
+}
+
+/// Each target's centre in the reference base: the main target's is
+/// `board_centre` (the target model's; given when target 0 is the main
+/// target), a further target's the mean of its corners seen.
+fn target_centres_in_ref(
+    robots: &[RobotObservations],
+    ref_from_targets: &[Iso3],
+    board_centre: Option<&Point3<f64>>,
+) -> Vec<Point3<f64>> {
+    ref_from_targets
+        .iter()
+        .enumerate()
+        .map(|(t, ref_from_target)| {
+            if let (0, Some(centre)) = (t, board_centre) {
+                return ref_from_target * centre;
+            }
+            let (sum, n) = robots
+                .iter()
+                .flat_map(|o| o.observations.iter())
+                .filter(|o| o.board.target == t)
+                .flat_map(|o| o.board.target_points.iter())
+                .fold((nalgebra::Vector3::zeros(), 0usize), |(s, n), p| {
+                    (s + p.coords, n + 1)
+                });
+            ref_from_target * Point3::from(sum / n.max(1) as f64)
+        })
+        .collect()
 }
 
 /// Each observation with its fit: the RMS of its inlier corners (`None` when it

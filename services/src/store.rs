@@ -322,6 +322,7 @@ impl Store {
                         base_from_flange: cap.base_from_flange.to_isometry("T_base_flange")?,
                         target_points: o.target_points.iter().map(|p| Point3::from(*p)).collect(),
                         pixels: o.pixels.iter().map(|p| Point2::from(*p)).collect(),
+                        target: 0,
                     },
                     pnp_rms_px: o.rms_px,
                     residuals_px: o.residuals_px.clone(),

@@ -293,6 +293,49 @@ fn three_robots_calibrate_and_every_pair_verifies() {
     );
 }
 
+/// `coordinator calibrate` on robots that do not all see one target: robot 3
+/// sees only a second board and is placed through robot 2, which sees both;
+/// without robot 2's views of it, robot 3 is named as cut off.
+#[test]
+fn robots_seeing_different_targets_calibrate_or_are_named_cut_off() {
+    let tmp = tempfile::tempdir().unwrap();
+    let linked = tmp.path().join("linked");
+    b2b_sim::pose_only::write_two_targets(&linked, 41, true).unwrap();
+    let result = tmp.path().join("RESULT.json");
+    let out = coordinator()
+        .args(["calibrate", "--dataset"])
+        .arg(&linked)
+        .arg("--out")
+        .arg(&result)
+        .arg("--state-dir")
+        .arg(state_beside(&result))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let printout = String::from_utf8_lossy(&out.stdout);
+    for name in ["T_robot1_robot2", "T_robot1_robot3", "T_robot2_robot3"] {
+        assert!(printout.contains(name), "{name}: {printout}");
+    }
+    let r: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    r.validate().unwrap();
+    assert_eq!(r.bases.keys().collect::<Vec<_>>(), ["robot2", "robot3"]);
+    let cut = tmp.path().join("cut");
+    b2b_sim::pose_only::write_two_targets(&cut, 41, false).unwrap();
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--dataset"])
+            .arg(&cut)
+            .arg("--out")
+            .arg(tmp.path().join("CUT.json"))
+            .arg("--state-dir")
+            .arg(state_beside(&result)),
+        "robot3 cannot be placed in robot1's base",
+    );
+    assert!(!tmp.path().join("CUT.json").exists());
+}
+
 /// `calibrate --method rgbd --hand-eye`: hand-eyes from earlier `agent handeye` runs
 /// replace the dataset's target; the result carries them, and misuse is named.
 #[test]

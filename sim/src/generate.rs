@@ -333,6 +333,7 @@ pub fn generate_scene(
                     depth: rel_depth,
                     base_from_flange: state.reported_base_from_flange,
                     camera_from_target: None,
+                    target: None,
                 });
             }
         }

@@ -54,6 +54,7 @@
 pub mod generate;
 pub mod image_io;
 pub mod markers;
+pub mod pose_only;
 pub mod render;
 pub mod robot_error;
 pub mod scene;

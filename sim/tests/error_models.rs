@@ -443,6 +443,7 @@ fn make_robot(
             base_from_flange: reported,
             target_points: obs.iter().map(|(k, _)| points[*k]).collect(),
             pixels: obs.iter().map(|(_, uv)| *uv).collect(),
+            target: 0,
         });
         out.camera_from_target.push(fitted);
         out.true_cov.push(cov);
