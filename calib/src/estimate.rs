@@ -782,8 +782,22 @@ mod tests {
         }
     }
 
-    fn two_target_inputs(two: &crate::synth::TwoTargets) -> Vec<(Vec<BoardCapture>, Vec<Iso3>)> {
-        (0..3).map(|r| two.captures(r)).collect()
+    /// `estimate_bases` on the three robots of `two`.
+    fn estimate_two_targets(
+        two: &crate::synth::TwoTargets,
+        camera: &CameraModel,
+    ) -> Result<BasesRun, CalibError> {
+        let inputs: Vec<(Vec<BoardCapture>, Vec<Iso3>)> = (0..3).map(|r| two.captures(r)).collect();
+        let robots: Vec<RobotCaptures<'_>> = inputs
+            .iter()
+            .map(|(c, p)| RobotCaptures {
+                camera,
+                captures: c,
+                camera_from_target: p,
+            })
+            .collect();
+        let refs: Vec<&RobotCaptures<'_>> = robots.iter().collect();
+        estimate_bases(&refs, &RefineOptions::default())
     }
 
     /// Robot 3 sees only the second target, robot 1 only the first: both bases
@@ -796,17 +810,7 @@ mod tests {
         let mut m2_sum = [0.0_f64; 2];
         for seed in 0..10 {
             let two = crate::synth::two_targets(40 + seed, &cfg, true).unwrap();
-            let inputs = two_target_inputs(&two);
-            let robots: Vec<RobotCaptures<'_>> = inputs
-                .iter()
-                .map(|(c, p)| RobotCaptures {
-                    camera: &cfg.camera,
-                    captures: c,
-                    camera_from_target: p,
-                })
-                .collect();
-            let refs: Vec<&RobotCaptures<'_>> = robots.iter().collect();
-            let run = estimate_bases(&refs, &RefineOptions::default()).unwrap();
+            let run = estimate_two_targets(&two, &cfg.camera).unwrap();
             assert_eq!(run.estimate.ref_from_targets.len(), 2);
             for r in 1..3 {
                 let d = crate::pose::left_difference(
@@ -857,17 +861,7 @@ mod tests {
     fn a_robot_no_shared_target_links_is_named() {
         let cfg = crate::synth::SynthConfig::default();
         let two = crate::synth::two_targets(40, &cfg, false).unwrap();
-        let inputs = two_target_inputs(&two);
-        let robots: Vec<RobotCaptures<'_>> = inputs
-            .iter()
-            .map(|(c, p)| RobotCaptures {
-                camera: &cfg.camera,
-                captures: c,
-                camera_from_target: p,
-            })
-            .collect();
-        let refs: Vec<&RobotCaptures<'_>> = robots.iter().collect();
-        let err = estimate_bases(&refs, &RefineOptions::default()).unwrap_err();
+        let err = estimate_two_targets(&two, &cfg.camera).unwrap_err();
         assert_eq!(err, CalibError::Disconnected { cut_off: vec![2] });
         assert!(
             err.to_string().contains("robot(s) 2 share no target"),

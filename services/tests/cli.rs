@@ -121,10 +121,17 @@ fn calibrate_bundled(dir: &Path, name: &str) -> (std::path::PathBuf, std::path::
     let ds = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../datasets")
         .join(name);
+    let (result, printout) = calibrate(dir, &ds);
+    (ds, result, printout)
+}
+
+/// `coordinator calibrate` on dataset `ds` into `dir`: the RESULT.json written
+/// and the printout.
+fn calibrate(dir: &Path, ds: &Path) -> (std::path::PathBuf, String) {
     let result = dir.join("RESULT.json");
     let out = coordinator()
         .args(["calibrate", "--dataset"])
-        .arg(&ds)
+        .arg(ds)
         .arg("--out")
         .arg(&result)
         .arg("--state-dir")
@@ -136,11 +143,7 @@ fn calibrate_bundled(dir: &Path, name: &str) -> (std::path::PathBuf, std::path::
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    (
-        ds,
-        result,
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-    )
+    (result, String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
 #[test]
@@ -301,19 +304,7 @@ fn robots_seeing_different_targets_calibrate_or_are_named_cut_off() {
     let tmp = tempfile::tempdir().unwrap();
     let linked = tmp.path().join("linked");
     b2b_sim::pose_only::write_two_targets(&linked, 41, true).unwrap();
-    let result = tmp.path().join("RESULT.json");
-    let out = coordinator()
-        .args(["calibrate", "--dataset"])
-        .arg(&linked)
-        .arg("--out")
-        .arg(&result)
-        .arg("--state-dir")
-        .arg(state_beside(&result))
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
-    let printout = String::from_utf8_lossy(&out.stdout);
+    let (result, printout) = calibrate(tmp.path(), &linked);
     for name in ["T_robot1_robot2", "T_robot1_robot3", "T_robot2_robot3"] {
         assert!(printout.contains(name), "{name}: {printout}");
     }
