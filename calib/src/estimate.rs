@@ -849,9 +849,13 @@ mod tests {
         // Robot 3's link runs through robot 2's base and hand-eye and both
         // targets, so it is the looser (0.72 mm worst, 0.09 mm for robot 2 when
         // measured); its covariance says so (mean Mahalanobis² near 6 for both).
-        assert!(worst[0] < 0.14e-3 && worst[1] < 1.1e-3, "{worst:?}");
-        for m in m2_mean {
-            assert!((3.0..=12.0).contains(&m), "mean Mahalanobis² {m}");
+        assert!(worst[0] < 0.14e-3 && worst[1] < 1.07e-3, "{worst:?}");
+        // Within 1.5x of the measured 4.9 and 6.0 (the README's figures).
+        for (m, measured) in m2_mean.iter().zip([4.9, 6.0]) {
+            assert!(
+                (measured / 1.5..=measured * 1.5).contains(m),
+                "mean Mahalanobis² {m}"
+            );
         }
     }
 
