@@ -552,9 +552,12 @@ pub const SPLIT_MIN_PER_HALF: usize = 5;
 /// Indices of `captures` in two halves by the azimuth of the flange about
 /// `centre_in_base` (the halves' boundary at the widest gap, so each half is
 /// one side of the board).
-fn halves(captures: &[BoardCapture], centre_in_base: &Point3<f64>) -> [Vec<usize>; 2] {
+fn halves<'a>(
+    captures: impl IntoIterator<Item = &'a BoardCapture>,
+    centre_in_base: &Point3<f64>,
+) -> [Vec<usize>; 2] {
     let mut az: Vec<(f64, usize)> = captures
-        .iter()
+        .into_iter()
         .enumerate()
         .map(|(i, c)| {
             let d = c.base_from_flange.translation.vector - centre_in_base.coords;
@@ -582,9 +585,10 @@ fn halves(captures: &[BoardCapture], centre_in_base: &Point3<f64>) -> [Vec<usize
     [order[..h].to_vec(), order[h..].to_vec()]
 }
 
-fn target_centre(captures: &[BoardCapture]) -> Point3<f64> {
+/// The mean of the corners the captures saw, in the target frame.
+pub fn target_centre<'a>(captures: impl IntoIterator<Item = &'a BoardCapture>) -> Point3<f64> {
     let (sum, n) = captures
-        .iter()
+        .into_iter()
         .flat_map(|c| c.target_points.iter())
         .fold((nalgebra::Vector3::zeros(), 0usize), |(s, n), p| {
             (s + p.coords, n + 1)
@@ -665,15 +669,12 @@ pub fn split_check_bases(
     // centre as the first robot that sees it saw it.
     let centres: Vec<Point3<f64>> = (0..targets)
         .map(|t| {
-            let seen: Vec<BoardCapture> = captures
+            let first = captures
                 .iter()
-                .find_map(|c| {
-                    let seen: Vec<BoardCapture> =
-                        c.iter().filter(|c| c.target == t).cloned().collect();
-                    (!seen.is_empty()).then_some(seen)
-                })
+                .find(|c| c.iter().any(|c| c.target == t))
+                .copied()
                 .unwrap_or_default();
-            target_centre(&seen)
+            target_centre(first.iter().filter(|c| c.target == t))
         })
         .collect();
     let split: Vec<[Vec<usize>; 2]> = captures
@@ -686,9 +687,11 @@ pub fn split_check_bases(
                 if group.is_empty() {
                     continue;
                 }
-                let seen: Vec<BoardCapture> = group.iter().map(|i| caps[*i].clone()).collect();
                 let base_from_target = estimate.base(r).inverse() * estimate.ref_from_targets[t];
-                let [a, b] = halves(&seen, &(base_from_target * centre));
+                let [a, b] = halves(
+                    group.iter().map(|i| &caps[*i]),
+                    &(base_from_target * centre),
+                );
                 out[0].extend(a.iter().map(|k| group[*k]));
                 out[1].extend(b.iter().map(|k| group[*k]));
             }

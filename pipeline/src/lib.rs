@@ -2030,15 +2030,12 @@ fn target_centres_in_ref(
             if let (0, Some(centre)) = (t, board_centre) {
                 return ref_from_target * centre;
             }
-            let (sum, n) = robots
+            let seen = robots
                 .iter()
                 .flat_map(|o| o.observations.iter())
-                .filter(|o| o.board.target == t)
-                .flat_map(|o| o.board.target_points.iter())
-                .fold((nalgebra::Vector3::zeros(), 0usize), |(s, n), p| {
-                    (s + p.coords, n + 1)
-                });
-            ref_from_target * Point3::from(sum / n.max(1) as f64)
+                .map(|o| &o.board)
+                .filter(|b| b.target == t);
+            ref_from_target * b2b_calib::estimate::target_centre(seen)
         })
         .collect()
 }

@@ -352,11 +352,7 @@ pub fn watch_command(
     let mut untested: BTreeMap<String, (u64, String)> = BTreeMap::new();
     let reference = result.reference.clone().unwrap_or_default();
     let mut last_summary = Instant::now();
-    let now_s = || {
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(f64::NAN, |d| d.as_secs_f64())
-    };
+    let now_s = || crate::history::now_unix_ms() as f64 / 1e3;
     let run = run(&bus, watcher, opts, stop, &mut |event| {
         match event {
             WatchEvent::Skipped { robot, why } => {
