@@ -79,20 +79,28 @@ pub(crate) fn read_captures(
     file: &Path,
     robot: &RobotManifest,
     targets: &BTreeMap<String, Target>,
-    robot_dir: &Path,
+    files: FilesAt<'_>,
 ) -> Result<Vec<Capture>, DatasetError> {
     let bytes = crate::read_bytes(file, "each robot folder must contain captures.csv")?;
     let table = table::parse_table(&bytes, file)?;
-    parse_captures(&table, robot, targets, Some(robot_dir))
+    parse_captures(&table, robot, targets, Some(files))
 }
 
-/// Parses and checks the rows of a captures table. With `robot_dir`, also checks that
-/// the named files exist.
+/// Where a robot's files are: its folder, and the dataset folder with every
+/// symlink resolved, which no file may leave.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FilesAt<'a> {
+    pub robot_dir: &'a Path,
+    pub real_root: &'a Path,
+}
+
+/// Parses and checks the rows of a captures table. With `files`, also checks that
+/// the named files exist inside the dataset folder.
 pub(crate) fn parse_captures(
     table: &Table,
     robot: &RobotManifest,
     targets: &BTreeMap<String, Target>,
-    robot_dir: Option<&Path>,
+    files: Option<FilesAt<'_>>,
 ) -> Result<Vec<Capture>, DatasetError> {
     let file = table.file.as_path();
     let columns = table::map_columns_optional(
@@ -143,8 +151,8 @@ pub(crate) fn parse_captures(
             target,
         };
         checker.check(row.row, Some(row.line), &capture)?;
-        if let Some(dir) = robot_dir {
-            check_files(file, dir, row, &capture)?;
+        if let Some(files) = files {
+            check_files(file, files, row, &capture)?;
         }
         captures.push(capture);
     }
@@ -164,24 +172,31 @@ fn parse_pose(
     pose::isometry_from_numbers(v, fields, |f| row.at(file, &f))
 }
 
-fn check_files(file: &Path, dir: &Path, row: &Row, capture: &Capture) -> Result<(), DatasetError> {
+fn check_files(
+    file: &Path,
+    files: FilesAt<'_>,
+    row: &Row,
+    capture: &Capture,
+) -> Result<(), DatasetError> {
     if let Some(image) = &capture.image {
-        let full = dir.join(image);
+        let full = files.robot_dir.join(image);
         if !full.is_file() {
             return Err(DatasetError::MissingImage {
                 at: row.at(file, "image"),
                 missing: full,
             });
         }
+        crate::inside(files.real_root, &full, || row.at(file, "image"))?;
     }
     if let Some(depth) = &capture.depth {
-        let full = dir.join(depth);
+        let full = files.robot_dir.join(depth);
         if !full.is_file() {
             return Err(DatasetError::MissingDepth {
                 at: row.at(file, "depth"),
                 missing: full,
             });
         }
+        crate::inside(files.real_root, &full, || row.at(file, "depth"))?;
     }
     Ok(())
 }
@@ -306,6 +321,12 @@ fn check_path(
     }
     if path.is_absolute() || path.has_root() {
         return bad("is absolute; paths are relative to the robot's folder");
+    }
+    // The robot's folder is one level below the dataset folder.
+    if crate::climbs_out(path, 1) {
+        return bad(
+            "climbs out of the dataset folder with `..`; a dataset reads only its own files",
+        );
     }
     let ext = path
         .extension()

@@ -213,6 +213,11 @@ pub enum DatasetError {
         first_row: usize,
     },
 
+    /// A file of the dataset that resolves (through a symlink) outside the
+    /// dataset folder: refused, never read.
+    #[error("{at}: {reason}")]
+    OutsideDataset { at: Location, reason: String },
+
     /// An image named in `captures.csv` that does not exist.
     #[error("{at}: image file {} does not exist", missing.display())]
     MissingImage { at: Location, missing: PathBuf },
@@ -294,6 +299,7 @@ impl DatasetError {
             | NotUnitQuaternion { at, .. }
             | LooksLikeMillimetres { at, .. }
             | DuplicateImage { at, .. }
+            | OutsideDataset { at, .. }
             | MissingImage { at, .. }
             | MissingDepth { at, .. }
             | NoObservation { at }

@@ -134,6 +134,11 @@ impl Dataset {
         let root = absolute(dir);
         let manifest = Manifest::load(&root)?;
         let manifest_file = root.join(MANIFEST_FILE);
+        // Every file read below must resolve inside this folder: a dataset is
+        // handed around, and a symlink must not make it read the machine's files.
+        let real_root = root
+            .canonicalize()
+            .map_err(|e| DatasetError::io(&root, e))?;
         let all_targets = std::iter::once(("target".to_owned(), &manifest.target)).chain(
             manifest
                 .targets
@@ -151,6 +156,9 @@ impl Dataset {
                     reason: format!("multimarker file {} does not exist", full.display()),
                 });
             }
+            inside(&real_root, &full, || {
+                Location::field(&manifest_file, format!("{at}.config"))
+            })?;
         }
         let mut robots = Vec::with_capacity(manifest.robots.len());
         for (i, robot) in manifest.robots.iter().enumerate() {
@@ -161,11 +169,22 @@ impl Dataset {
                     folder,
                 });
             }
+            let robot_at = || Location::field(&manifest_file, format!("robots[{i}].id"));
+            inside(&real_root, &folder, robot_at)?;
+            let captures_file = folder.join(CAPTURES_FILE);
+            if captures_file.exists() {
+                inside(&real_root, &captures_file, || {
+                    Location::file(&captures_file)
+                })?;
+            }
             let captures = captures::read_captures(
-                &folder.join(CAPTURES_FILE),
+                &captures_file,
                 robot,
                 &manifest.targets,
-                &folder,
+                captures::FilesAt {
+                    robot_dir: &folder,
+                    real_root: &real_root,
+                },
             )?;
             robots.push(RobotData {
                 id: robot.id.clone(),
@@ -180,6 +199,7 @@ impl Dataset {
                     robots: manifest.robots.len(),
                 });
             }
+            inside(&real_root, &touch_file, || Location::file(&touch_file))?;
             Some(captures::read_touch_points(&touch_file)?)
         } else {
             None
@@ -195,6 +215,7 @@ impl Dataset {
             if let Some(e) = ambiguous_pair_file(&root, name, &pairs) {
                 return Err(e);
             }
+            inside(&real_root, &file, || Location::file(&file))?;
             pair_touch_points.insert(pair.clone(), captures::read_touch_points(&file)?);
         }
         Ok(Dataset {
@@ -431,6 +452,46 @@ fn render_touches(file: &Path, pairs: &[TouchPair]) -> Result<Vec<u8>, DatasetEr
 /// `path` made absolute without touching the file system beyond the current directory.
 pub(crate) fn absolute(path: &Path) -> PathBuf {
     std::path::absolute(path).unwrap_or_else(|_| path.to_owned())
+}
+
+/// Whether relative `path`, read from a folder `depth` levels below the
+/// dataset folder, climbs above the dataset folder with `..` (judged on the
+/// text; symlinks are [`inside`]'s business).
+pub(crate) fn climbs_out(path: &Path, depth: usize) -> bool {
+    let mut depth = depth as i64;
+    for c in path.components() {
+        match c {
+            std::path::Component::ParentDir => depth -= 1,
+            std::path::Component::Normal(_) => depth += 1,
+            _ => {}
+        }
+        if depth < 0 {
+            return true;
+        }
+    }
+    false
+}
+
+/// Refuses `path` (which exists) when it resolves, through `..` or symlinks,
+/// outside `real_root` (the dataset folder with its own symlinks resolved).
+pub(crate) fn inside(
+    real_root: &Path,
+    path: &Path,
+    at: impl FnOnce() -> Location,
+) -> Result<(), DatasetError> {
+    let real = path.canonicalize().map_err(|e| DatasetError::io(path, e))?;
+    if real.starts_with(real_root) {
+        return Ok(());
+    }
+    Err(DatasetError::OutsideDataset {
+        at: at(),
+        reason: format!(
+            "{} resolves to {}, outside the dataset folder {}; a dataset reads only its own files",
+            path.display(),
+            real.display(),
+            real_root.display()
+        ),
+    })
 }
 
 pub(crate) fn read_bytes(file: &Path, what: &'static str) -> Result<Vec<u8>, DatasetError> {

@@ -200,7 +200,10 @@ impl Manifest {
             let Some(targets) = targets.as_object() else {
                 return Err(DatasetError::InvalidTarget {
                     at: Location::field(file, "targets"),
-                    reason: format!("targets must be an object of targets by id, found {targets}"),
+                    reason: format!(
+                        "targets must be an object of targets by id, found {}",
+                        b2b_errors::excerpt(&targets.to_string())
+                    ),
                 });
             };
             for (id, target) in targets {
@@ -284,7 +287,10 @@ fn check_kind(target: &serde_json::Value, at: &str, file: &Path) -> Result<(), D
     if !target.is_object() {
         return Err(DatasetError::InvalidTarget {
             at: Location::field(file, at),
-            reason: format!("target must be an object with a `kind`, found {target}"),
+            reason: format!(
+                "target must be an object with a `kind`, found {}",
+                b2b_errors::excerpt(&target.to_string())
+            ),
         });
     }
     match target.get("kind") {
@@ -447,6 +453,15 @@ impl Target {
                         at: at(),
                         reason: format!(
                             "config {} must be relative to the dataset folder",
+                            config.display()
+                        ),
+                    });
+                }
+                if crate::climbs_out(config, 0) {
+                    return Err(DatasetError::InvalidTarget {
+                        at: at(),
+                        reason: format!(
+                            "config {} climbs out of the dataset folder with `..`; a dataset reads only its own files",
                             config.display()
                         ),
                     });

@@ -151,8 +151,9 @@ pub(crate) fn map_columns_optional(
             && !block.contains(&name.as_str())
             && !optional.contains(&name.as_str())
         {
+            let name = b2b_errors::excerpt(name);
             return Err(DatasetError::BadHeader {
-                at: at(Some(name)),
+                at: at(Some(&name)),
                 reason: format!(
                     "unknown column `{name}` (column {}); expected {}",
                     i + 1,
@@ -233,7 +234,7 @@ pub(crate) fn number(
         let found = if text.is_empty() {
             "an empty cell".to_owned()
         } else {
-            format!("`{text}`")
+            format!("`{}`", b2b_errors::excerpt(text))
         };
         return Err(DatasetError::BadNumber {
             at: row.at(file, name),

@@ -787,3 +787,133 @@ fn empty_captures_file() {
     let e = fx.load_err(C1, &["line 1", "no header"]);
     assert!(matches!(e, E::BadHeader { .. }), "{e}");
 }
+
+// --- files stay inside the dataset folder ------------------------------------------------
+
+/// A file outside the dataset, which a symlink inside it points at.
+fn outside_file(name: &str) -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join(name);
+    fs::write(&file, "root:x:0:0:root:/root:/bin/bash\n").unwrap();
+    (dir, file)
+}
+
+fn symlink(to: &std::path::Path, at: &std::path::Path) {
+    let _ = fs::remove_file(at);
+    fs::create_dir_all(at.parent().unwrap()).unwrap();
+    std::os::unix::fs::symlink(to, at).unwrap();
+}
+
+#[test]
+fn image_paths_that_climb_out_are_refused() {
+    let fx = Fixture::new();
+    row2(&fx, "../../outside/001.png,,0.5,-0.1,0.6,0.0,0.0,0.0,1.0");
+    let e = fx.load_err(C1, &["row 2 (line 3)", "field `image`", "`..`"]);
+    assert!(matches!(e, E::BadPath { .. }), "{e}");
+    // `..` that stays inside the dataset (a folder of images beside the robots')
+    // is read.
+    fx.write("shared/001.png", "not really an image");
+    row2_back(&fx, "../shared/001.png,,0.5,-0.1,0.6,0.0,0.0,0.0,1.0");
+    fx.load().expect("`..` inside the dataset");
+    row2_back(
+        &fx,
+        "images/../../../x/001.png,,0.5,-0.1,0.6,0.0,0.0,0.0,1.0",
+    );
+    let e = fx.load_err(C1, &["row 2 (line 3)", "`..`"]);
+    assert!(matches!(e, E::BadPath { .. }), "{e}");
+}
+
+fn row2_back(fx: &Fixture, replacement: &str) {
+    let text = fs::read_to_string(fx.path(C1)).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    let mut out: Vec<&str> = lines[..2].to_vec();
+    out.push(replacement);
+    out.extend(&lines[3..]);
+    fx.write(C1, &(out.join("\n") + "\n"));
+}
+
+#[test]
+fn images_symlinked_out_of_the_dataset_are_refused_and_inside_ones_read() {
+    let fx = Fixture::new();
+    // A symlink to another file of the dataset is fine.
+    symlink(
+        &fx.path("robot2/images/a.jpg"),
+        &fx.path("robot1/images/001.png"),
+    );
+    fx.load().expect("a symlink inside the dataset");
+    let (_keep, secret) = outside_file("passwd.png");
+    symlink(&secret, &fx.path("robot1/images/001.png"));
+    let e = fx.load_err(
+        C1,
+        &[
+            "row 2 (line 3)",
+            "field `image`",
+            "outside the dataset folder",
+        ],
+    );
+    assert!(matches!(e, E::OutsideDataset { .. }), "{e}");
+    assert!(!e.to_string().contains("root:x"), "{e}");
+    // The same for a depth image.
+    let fx = Fixture::new();
+    symlink(&secret, &fx.path("robot1/depth/000.png"));
+    let e = fx.load_err(C1, &["row 1 (line 2)", "field `depth`", "outside"]);
+    assert!(matches!(e, E::OutsideDataset { .. }), "{e}");
+}
+
+#[test]
+fn robot_folders_captures_and_touch_files_symlinked_out_are_refused() {
+    let outside = tempfile::tempdir().unwrap();
+    // A robot folder elsewhere, valid in itself.
+    let fx = Fixture::new();
+    fs::rename(fx.path("robot2"), outside.path().join("robot2")).unwrap();
+    symlink(&outside.path().join("robot2"), &fx.path("robot2"));
+    let e = fx.load_err(M, &["field `robots[1].id`", "outside the dataset folder"]);
+    assert!(matches!(e, E::OutsideDataset { .. }), "{e}");
+
+    let fx = Fixture::new();
+    let elsewhere = outside.path().join("captures.csv");
+    fs::copy(fx.path(C1), &elsewhere).unwrap();
+    symlink(&elsewhere, &fx.path(C1));
+    let e = fx.load_err(C1, &["outside the dataset folder"]);
+    assert!(matches!(e, E::OutsideDataset { .. }), "{e}");
+
+    let fx = Fixture::new();
+    let elsewhere = outside.path().join("touch_points.csv");
+    fs::copy(fx.path(T), &elsewhere).unwrap();
+    symlink(&elsewhere, &fx.path(T));
+    let e = fx.load_err(T, &["outside the dataset folder"]);
+    assert!(matches!(e, E::OutsideDataset { .. }), "{e}");
+}
+
+#[test]
+fn a_multimarker_file_outside_the_dataset_is_refused() {
+    let fx = with_target(
+        r#"{ "kind": "multimarker", "config": "../passwd.dat", "dictionary": "ARTOOLKIT" }"#,
+    );
+    let e = fx.load_err(M, &["field `target.config`", "`..`"]);
+    assert!(matches!(e, E::InvalidTarget { .. }), "{e}");
+
+    let fx = with_target(
+        r#"{ "kind": "multimarker", "config": "target/multi.dat", "dictionary": "ARTOOLKIT" }"#,
+    );
+    let (_keep, secret) = outside_file("passwd.dat");
+    symlink(&secret, &fx.path("target/multi.dat"));
+    let e = fx.load_err(M, &["field `target.config`", "outside the dataset folder"]);
+    assert!(matches!(e, E::OutsideDataset { .. }), "{e}");
+}
+
+#[test]
+fn errors_quote_at_most_a_short_excerpt_of_a_file() {
+    let fx = Fixture::new();
+    let long = "root:x:0:0:root:/root:/bin/bash:and-a-lot-more-of-the-file";
+    fx.edit(C1, "image,depth", &format!("{long},depth"));
+    let e = fx.load_err(C1, &["unknown column", "root:x:0:0:root"]);
+    assert!(!e.to_string().contains("/bin/bash"), "{e}");
+    let fx = Fixture::new();
+    row2(
+        &fx,
+        &format!("images/001.png,,{long},-0.1,0.6,0.0,0.0,0.0,1.0"),
+    );
+    let e = fx.load_err(C1, &["row 2", "root:x:0:0:root"]);
+    assert!(!e.to_string().contains("and-a-lot-more"), "{e}");
+}

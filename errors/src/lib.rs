@@ -1,7 +1,8 @@
 //! The rule of every error in this workspace: a message leaves its source out,
 //! and whoever prints an error prints the whole chain, "a: b: c", so each cause
 //! appears once. [`chain`] is that printing; [`assert_cause_once`] is the test
-//! each crate runs on its wrapping variants.
+//! each crate runs on its wrapping variants. A message quotes a file's text only
+//! through [`excerpt`].
 
 use std::error::Error;
 
@@ -16,6 +17,25 @@ pub fn chain(e: &dyn Error) -> String {
     }
     text
 }
+
+/// At most [`EXCERPT_CHARS`] characters of a file's text, escaped, for an
+/// error message: an error names what was wrong and where, and never prints
+/// more of a file than that (a file that is not what it claims may hold
+/// anything).
+pub fn excerpt(text: &str) -> String {
+    let mut out: String = text
+        .chars()
+        .take(EXCERPT_CHARS)
+        .flat_map(char::escape_debug)
+        .collect();
+    if text.chars().nth(EXCERPT_CHARS).is_some() {
+        out.push('…');
+    }
+    out
+}
+
+/// The most characters of a file an error message quotes ([`excerpt`]).
+pub const EXCERPT_CHARS: usize = 24;
 
 /// For tests: `e` keeps its cause as its source, its own message leaves the
 /// cause out, and the chain prints it exactly once. Panics otherwise.
@@ -35,6 +55,15 @@ pub fn assert_cause_once(e: &(dyn Error + 'static)) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_excerpt_is_short_escaped_and_marked_when_cut() {
+        assert_eq!(excerpt("twelve"), "twelve");
+        assert_eq!(excerpt("a\tb\u{1b}[31m"), "a\\tb\\u{1b}[31m");
+        let long = "x".repeat(EXCERPT_CHARS + 1);
+        assert_eq!(excerpt(&long), format!("{}…", "x".repeat(EXCERPT_CHARS)));
+        assert_eq!(excerpt(&long[1..]), "x".repeat(EXCERPT_CHARS));
+    }
 
     #[derive(Debug)]
     struct Outer(std::io::Error, bool);

@@ -19,9 +19,11 @@ mod common;
 use common::*;
 
 /// A copy of a dataset in a temporary folder with every robot's `camera` block
-/// deleted from `dataset.json`; everything else is symlinked, not copied.
+/// deleted from `dataset.json` (a copy: a dataset reads only files inside its
+/// own folder, so symlinks to the original would be refused).
 fn without_camera(dir: &Path) -> tempfile::TempDir {
     let tmp = tempfile::tempdir().unwrap();
+    copy_dir(dir, tmp.path());
     let text = std::fs::read_to_string(dir.join("dataset.json")).unwrap();
     let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
     for robot in json["robots"].as_array_mut().unwrap() {
@@ -32,16 +34,6 @@ fn without_camera(dir: &Path) -> tempfile::TempDir {
         serde_json::to_string_pretty(&json).unwrap(),
     )
     .unwrap();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let entry = entry.unwrap();
-        if entry.file_name() != "dataset.json" {
-            std::os::unix::fs::symlink(
-                entry.path().canonicalize().unwrap(),
-                tmp.path().join(entry.file_name()),
-            )
-            .unwrap();
-        }
-    }
     tmp
 }
 

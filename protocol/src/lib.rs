@@ -146,6 +146,21 @@ pub fn validate_covariance(field: &str, c: &Covariance6) -> Result<(), ProtocolE
             });
         }
     }
+    // Positive semi-definite: no direction with a negative variance (a bound
+    // computed from such a matrix would be imaginary or infinite). Rounding
+    // may leave an eigenvalue a hair below zero; a real one is not that small.
+    let m = nalgebra::Matrix6::from_fn(|i, j| c[i][j]);
+    let eigen = m.symmetric_eigenvalues();
+    let largest = eigen.amax();
+    let smallest = eigen.min();
+    if smallest < -1e-9 * largest {
+        return Err(ProtocolError::BadCovariance {
+            field: field.to_owned(),
+            reason: format!(
+                "not positive semi-definite: an eigenvalue is {smallest:.3e} (the largest {largest:.3e})"
+            ),
+        });
+    }
     Ok(())
 }
 
@@ -405,5 +420,28 @@ mod tests {
         let mut c = [[0.0; 6]; 6];
         c[0][1] = 1.0;
         assert!(validate_covariance("covariance", &c).is_err());
+    }
+
+    /// Positive variances on the diagonal, symmetric, finite, and still no
+    /// covariance: the direction (1, -1) in tx, ty has variance -1e-6.
+    #[test]
+    fn a_covariance_that_is_not_positive_semi_definite_is_rejected() {
+        let mut c = [[0.0; 6]; 6];
+        for (i, row) in c.iter_mut().enumerate() {
+            row[i] = if i < 3 { 1e-8 } else { 1e-6 };
+        }
+        c[3][4] = 2e-6;
+        c[4][3] = 2e-6;
+        let e = validate_covariance("covariance", &c).unwrap_err();
+        assert!(e.to_string().contains("not positive semi-definite"), "{e}");
+        // At the edge: a singular one (rank 5) passes, as computed ones may be.
+        c[3][4] = 1e-6;
+        c[4][3] = 1e-6;
+        validate_covariance("covariance", &c).unwrap();
+        c[0][0] = f64::INFINITY;
+        assert!(matches!(
+            validate_covariance("covariance", &c),
+            Err(ProtocolError::NonFinite { .. })
+        ));
     }
 }

@@ -9,8 +9,14 @@
 //! zenoh sessions are peers. Without `--zenoh CONFIG` the coordinator listens on
 //! [`DEFAULT_ENDPOINT`] (loopback) and agents connect to it, with multicast
 //! scouting off, so nothing leaves the machine unless a configuration says so. A
-//! configuration file is passed to zenoh as it is: peers or routers, TLS, access
-//! control, user/password authentication are all zenoh's own JSON5 keys.
+//! configuration file is passed to zenoh as it is: peers or routers, TLS (zenoh
+//! is built with its TLS transport) and access control are zenoh's own JSON5
+//! keys. zenoh is built without `auth_usrpwd` and `auth_pubkey`: a
+//! user/password section in a configuration authenticates nothing. Until the
+//! bus is authenticated, the coordinator's journal is the defence: a capture
+//! that contradicts one held is a conflict and used by neither version
+//! ([`crate::store::Arrival`]), and a status neither stalls nor completes a run
+//! beyond the captures that arrived.
 //!
 //! Payloads are JSON [`Envelope`]s, results included. [`encode`] refuses what
 //! does not serialise instead of sending an empty payload; [`decode`] checks
@@ -131,6 +137,43 @@ pub fn config(file: Option<&Path>, role: Role) -> Result<zenoh::Config, BusError
     Ok(c)
 }
 
+/// Why a session with `config` (read from `file`, if any) would not be
+/// authenticated, or `None` when it is: mutual TLS on, and every endpoint TLS.
+pub fn unauthenticated(file: Option<&Path>, config: &zenoh::Config) -> Option<String> {
+    if file.is_none() {
+        return Some(
+            "no --zenoh configuration, so loopback only; `coordinator pki init` writes secured ones"
+                .into(),
+        );
+    }
+    let get = |key: &str| config.get_json(key).unwrap_or_default();
+    if get("transport/link/tls/enable_mtls") != "true" {
+        return Some(
+            "the configuration does not enable mutual TLS (transport/link/tls/enable_mtls)".into(),
+        );
+    }
+    for side in ["listen", "connect"] {
+        // A list, or lists by mode ({"peer": [...], "router": [...]}).
+        let value: serde_json::Value =
+            serde_json::from_str(&get(&format!("{side}/endpoints"))).unwrap_or_default();
+        let lists: Vec<&serde_json::Value> = match &value {
+            serde_json::Value::Object(by_mode) => by_mode.values().collect(),
+            other => vec![other],
+        };
+        let endpoints = lists
+            .into_iter()
+            .filter_map(serde_json::Value::as_array)
+            .flatten()
+            .filter_map(serde_json::Value::as_str);
+        for e in endpoints {
+            if !e.starts_with("tls/") {
+                return Some(format!("{side} endpoint {e} is not TLS"));
+            }
+        }
+    }
+    None
+}
+
 /// Opens a zenoh session.
 pub fn open(config: zenoh::Config) -> Result<zenoh::Session, BusError> {
     zenoh::open(config).wait().map_err(|e| BusError::Open {
@@ -145,10 +188,15 @@ pub struct ZenohBus {
 }
 
 impl ZenohBus {
-    /// Opens a session with [`config`].
+    /// Opens a session with [`config`]; says so on stderr when the bus it
+    /// joins is not authenticated.
     pub fn open(file: Option<&Path>, role: Role) -> Result<ZenohBus, BusError> {
+        let config = config(file, role)?;
+        if let Some(why) = unauthenticated(file, &config) {
+            tracing::warn!("the bus is not authenticated: {why}");
+        }
         Ok(ZenohBus {
-            session: open(config(file, role)?)?,
+            session: open(config)?,
         })
     }
 

@@ -21,7 +21,7 @@ use b2b_protocol::messages::{
 
 use crate::agent::Sequence;
 use crate::bus::{self, Bus};
-use crate::store::{Sample, Store};
+use crate::store::{Arrival, Sample, Store};
 
 /// Options of `coordinator run`.
 #[derive(Debug, Clone)]
@@ -45,6 +45,8 @@ pub struct RunOptions {
 pub struct Counters {
     pub accepted: usize,
     pub duplicates: usize,
+    /// Captures that arrived with an index already held but other content.
+    pub conflicts: usize,
     pub rejected: usize,
 }
 
@@ -64,13 +66,11 @@ fn handle(
         _ => return Ok(()),
     };
     match sample {
-        Ok(sample) => {
-            if store.accept(sample)? {
-                counters.accepted += 1;
-            } else {
-                counters.duplicates += 1;
-            }
-        }
+        Ok(sample) => match store.accept(sample)? {
+            Arrival::New => counters.accepted += 1,
+            Arrival::Duplicate => counters.duplicates += 1,
+            Arrival::Conflict => counters.conflicts += 1,
+        },
         Err(reason) => {
             counters.rejected += 1;
             tracing::warn!("{reason}");
@@ -199,7 +199,7 @@ pub fn run_on(
     let mut last_check = Instant::now();
     let mut last_report = Instant::now();
     loop {
-        if store.complete(opts.robots) || stop.load(Ordering::SeqCst) {
+        if store.complete(opts.order.as_deref(), opts.robots) || stop.load(Ordering::SeqCst) {
             break;
         }
         if last_report.elapsed() >= WAIT_REPORT_PERIOD {

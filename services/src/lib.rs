@@ -10,6 +10,7 @@ pub mod coordinator;
 pub mod history;
 pub mod live;
 pub mod outputs;
+pub mod pki;
 pub mod plan;
 pub mod recording;
 pub mod setup;

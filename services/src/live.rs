@@ -44,6 +44,10 @@ pub struct LiveFrame {
 pub trait FrameSource {
     /// The first frame whose exposure started at or after `after_ns`.
     fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame>;
+    /// The newest frame whose exposure started at or after `after_ns`: the
+    /// queue is drained, so a watch looks at what the camera sees now, not at
+    /// what it saw while the agent was busy.
+    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame>;
     /// Frames that arrived but were never looked at (the queue overflowed while the
     /// arm moved; the camera never waits for the agent).
     fn dropped(&self) -> u64;
@@ -281,6 +285,11 @@ impl LiveSource {
         let waited = Instant::now();
         let frame = self.frames.frame_after(still_at, self.cfg.frame_timeout)?;
         self.timings.frame_wait_ms += ms(waited.elapsed());
+        self.still_through(frame)
+    }
+
+    /// `frame` with the joints it was taken at, the arm checked still after it.
+    fn still_through(&self, frame: LiveFrame) -> anyhow::Result<(LiveFrame, Joints, f64)> {
         anyhow::ensure!(
             self.fri
                 .is_still(self.cfg.still_window, self.cfg.still_tol_rad),
@@ -293,6 +302,22 @@ impl LiveSource {
             .context("no joint state from the FRI controller")?;
         let t = js.timestamp.as_duration().as_secs_f64();
         Ok((frame, js.q, t))
+    }
+
+    /// The watch's frame: the arm still (else it waits for rest and takes frames
+    /// exposed after it), the newest frame exposed at or after `after_ns`, and
+    /// the arm checked still again.
+    fn watch_frame(&mut self, after_ns: u64) -> anyhow::Result<(LiveFrame, Joints, f64)> {
+        let after_ns = if self
+            .fri
+            .is_still(self.cfg.still_window, self.cfg.still_tol_rad)
+        {
+            after_ns
+        } else {
+            after_ns.max(self.wait_still()?)
+        };
+        let frame = self.frames.newest_after(after_ns, self.cfg.frame_timeout)?;
+        self.still_through(frame)
     }
 
     fn move_to(&mut self, q: Joints) -> anyhow::Result<()> {
@@ -388,15 +413,25 @@ impl LiveSource {
         self.move_to(v.q)?;
         let progress = Progress::default();
         let mut row = 0usize;
+        // Frames exposed from here on show the arm at rest; each tick takes the
+        // newest one not yet looked at, so a moved cart shows up in the first
+        // frame the camera exposes after the move, not one frame later.
+        let mut after_ns = self.wait_still()?;
         while !stop.load(Ordering::SeqCst) {
             let started = Instant::now();
             row += 1;
-            match self.still_frame() {
+            match self.watch_frame(after_ns) {
                 Ok((frame, q, t)) => {
+                    after_ns = frame.timestamp_ns + 1;
                     let (capture, _) = self.look(&frame, &q, t, row, &progress);
                     deliver(capture)?;
                 }
-                Err(e) => tracing::warn!("{}: watch: {e:#}", self.cfg.robot),
+                Err(e) => {
+                    tracing::warn!("{}: watch: {e:#}", self.cfg.robot);
+                    // Whatever went wrong (the arm pushed, the camera late),
+                    // only frames exposed from now on count.
+                    after_ns = after_ns.max(now_ns());
+                }
             }
             while started.elapsed() < period && !stop.load(Ordering::SeqCst) {
                 std::thread::sleep(
@@ -871,6 +906,18 @@ impl FrameSource for IceoryxFrames {
                 return Ok(live);
             }
         }
+    }
+
+    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame> {
+        if let Some(frame) = self.subscriber.latest()?
+            && frame.header().timestamp_ns >= after_ns
+        {
+            let mut live = to_live(&frame)?;
+            drop(frame);
+            live.depth = self.depth_of(live.number, Duration::from_secs(2))?;
+            return Ok(live);
+        }
+        self.frame_after(after_ns, timeout)
     }
 
     fn dropped(&self) -> u64 {

@@ -32,12 +32,28 @@ pub enum Sample {
 /// The journal file name inside the state folder.
 pub const JOURNAL: &str = "samples.jsonl";
 
+/// What became of a sample offered to the store.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Arrival {
+    /// Kept and used.
+    New,
+    /// The same as one held (a re-send, a catch-up): dropped.
+    Duplicate,
+    /// A capture whose index is held with different content: journaled and
+    /// counted, and that index is used by neither version.
+    Conflict,
+}
+
 /// Samples by robot, de-duplicated.
 #[derive(Debug)]
 pub struct Store {
     path: PathBuf,
     journal: File,
     captures: BTreeMap<String, BTreeMap<u64, Capture>>,
+    /// Captures that arrived with an index already held but other content, by
+    /// robot and index: no version of such an index is used (which one is the
+    /// robot's cannot be told from the bus), and the result lists it.
+    conflicts: BTreeMap<String, BTreeMap<u64, Vec<Capture>>>,
     status: BTreeMap<String, (u64, AgentStatus)>,
     hand_eye: BTreeMap<String, (u64, HandEyeUpdate)>,
     /// Lines of the journal that could not be read back (a crash mid-write).
@@ -58,6 +74,7 @@ impl Store {
                 .with_context(|| format!("cannot open {}", path.display()))?,
             path: path.clone(),
             captures: BTreeMap::new(),
+            conflicts: BTreeMap::new(),
             status: BTreeMap::new(),
             hand_eye: BTreeMap::new(),
             skipped_lines: 0,
@@ -90,50 +107,85 @@ impl Store {
         Ok(store)
     }
 
-    /// Whether a sample adds something (a capture not yet held, a newer status).
-    fn is_new(&self, sample: &Sample) -> bool {
+    /// What a sample adds: a capture not yet held, a newer status; or a capture
+    /// held with other content (a conflict, unless that version is known).
+    fn classify(&self, sample: &Sample) -> Arrival {
+        let new = |is: bool| if is { Arrival::New } else { Arrival::Duplicate };
         match sample {
-            Sample::Capture(e) => !self
-                .captures
-                .get(&e.robot)
-                .is_some_and(|m| m.contains_key(&e.body.index)),
-            Sample::Status(e) => self
-                .status
-                .get(&e.robot)
-                .is_none_or(|(seq, s)| e.seq > *seq && s != &e.body),
-            Sample::HandEye(e) => self
+            Sample::Capture(e) => {
+                let Some(held) = self
+                    .captures
+                    .get(&e.robot)
+                    .and_then(|m| m.get(&e.body.index))
+                else {
+                    return Arrival::New;
+                };
+                let known = held == &e.body
+                    || self
+                        .conflicts
+                        .get(&e.robot)
+                        .and_then(|m| m.get(&e.body.index))
+                        .is_some_and(|v| v.contains(&e.body));
+                if known {
+                    Arrival::Duplicate
+                } else {
+                    Arrival::Conflict
+                }
+            }
+            // A newer status, or any status when the one held is contradicted
+            // by the captures that arrived (a forged or stale status must not
+            // outrank the robot's own by its sequence number).
+            Sample::Status(e) => new(match self.status.get(&e.robot) {
+                None => true,
+                Some((seq, s)) => s != &e.body && (e.seq > *seq || self.contradicted(&e.robot, s)),
+            }),
+            Sample::HandEye(e) => new(self
                 .hand_eye
                 .get(&e.robot)
-                .is_none_or(|(seq, _)| e.seq > *seq),
+                .is_none_or(|(seq, _)| e.seq > *seq)),
         }
     }
 
-    fn apply(&mut self, sample: Sample) -> bool {
-        if !self.is_new(&sample) {
-            return false;
-        }
-        match sample {
-            Sample::Capture(e) => {
+    fn apply(&mut self, sample: Sample) -> Arrival {
+        let arrival = self.classify(&sample);
+        match (arrival, sample) {
+            (Arrival::Duplicate, _) => {}
+            (Arrival::Conflict, Sample::Capture(e)) => {
+                tracing::warn!(
+                    "robot '{}' capture {}: a second, different capture with this index \
+                     (envelope seq {}); neither is used",
+                    e.robot,
+                    e.body.index,
+                    e.seq
+                );
+                self.conflicts
+                    .entry(e.robot)
+                    .or_default()
+                    .entry(e.body.index)
+                    .or_default()
+                    .push(e.body);
+            }
+            (_, Sample::Capture(e)) => {
                 self.captures
                     .entry(e.robot)
                     .or_default()
                     .insert(e.body.index, e.body);
             }
-            Sample::Status(e) => {
+            (_, Sample::Status(e)) => {
                 self.status.insert(e.robot, (e.seq, e.body));
             }
-            Sample::HandEye(e) => {
+            (_, Sample::HandEye(e)) => {
                 self.hand_eye.insert(e.robot, (e.seq, e.body));
             }
         }
-        true
+        arrival
     }
 
-    /// Keeps a sample: written and flushed to the journal first, then used.
-    /// Returns whether it was new.
-    pub fn accept(&mut self, sample: Sample) -> anyhow::Result<bool> {
-        if !self.is_new(&sample) {
-            return Ok(false);
+    /// Keeps a sample: written and flushed to the journal first (a conflicting
+    /// capture too: nothing that arrived is lost), then used.
+    pub fn accept(&mut self, sample: Sample) -> anyhow::Result<Arrival> {
+        if self.classify(&sample) == Arrival::Duplicate {
+            return Ok(Arrival::Duplicate);
         }
         let mut line = serde_json::to_vec(&sample)?;
         line.push(b'\n');
@@ -162,15 +214,84 @@ impl Store {
         self.captures.get(robot).map_or(0, |m| m.len() as u64)
     }
 
+    /// Of the first `published` capture indices of a robot, how many are held.
+    /// An agent numbers its captures 0, 1, ...: what its status claims is
+    /// checked against these, so a stray index (999) neither completes nor
+    /// stalls a robot.
+    fn held_of(&self, robot: &str, published: u64) -> u64 {
+        self.captures
+            .get(robot)
+            .map_or(0, |m| m.range(..published).count() as u64)
+    }
+
+    /// How many captures a robot has demonstrably published: indices 0, 1, ...
+    /// held without a gap.
+    fn contiguous(&self, robot: &str) -> u64 {
+        let Some(m) = self.captures.get(robot) else {
+            return 0;
+        };
+        m.keys()
+            .zip(0u64..)
+            .take_while(|(index, expected)| *index == expected)
+            .count() as u64
+    }
+
+    /// A status that says fewer captures were published than have arrived.
+    fn contradicted(&self, robot: &str, s: &AgentStatus) -> bool {
+        s.published < self.contiguous(robot)
+    }
+
+    /// Captures with conflicting versions, over all robots.
+    pub fn conflict_count(&self) -> usize {
+        self.conflicts.values().map(BTreeMap::len).sum()
+    }
+
+    /// A robot's captures that may be used, and the reason each other one is
+    /// not: an index with conflicting versions, or (once the robot finished) an
+    /// index beyond the captures it says it published.
+    fn usable(&self, robot: &str) -> (Vec<(u64, &Capture)>, Vec<RejectedCapture>) {
+        let finished = self
+            .status(robot)
+            .filter(|s| s.state == AgentState::Finished)
+            .map(|s| s.published);
+        let conflicts = self.conflicts.get(robot);
+        let mut usable = Vec::new();
+        let mut left_out = Vec::new();
+        for (index, cap) in self.captures.get(robot).into_iter().flatten() {
+            let reason = if let Some(v) = conflicts.and_then(|m| m.get(index)) {
+                Some(format!(
+                    "conflict: {} different captures arrived with index {index}; neither is used",
+                    v.len() + 1
+                ))
+            } else {
+                finished.filter(|p| index >= p).map(|published| {
+                    format!(
+                        "index {index} is beyond the {published} captures robot '{robot}' says it published"
+                    )
+                })
+            };
+            match reason {
+                Some(reason) => left_out.push(RejectedCapture {
+                    robot: robot.to_owned(),
+                    image: cap.image.clone(),
+                    row: Some(*index as usize + 1),
+                    reason,
+                }),
+                None => usable.push((*index, cap)),
+            }
+        }
+        (usable, left_out)
+    }
+
     pub fn status(&self, robot: &str) -> Option<&AgentStatus> {
         self.status.get(robot).map(|(_, s)| s)
     }
 
-    /// Robots whose status says they published more captures than are held.
+    /// Robots whose status says they published captures that are not held.
     pub fn missing(&self) -> Vec<String> {
         self.status
             .iter()
-            .filter(|(robot, (_, s))| s.published > self.capture_count(robot))
+            .filter(|(robot, (_, s))| s.published > self.held_of(robot, s.published))
             .map(|(r, _)| r.clone())
             .collect()
     }
@@ -191,9 +312,16 @@ impl Store {
                 match self.status(r) {
                     None if held == 0 => Some(format!("{r}: not heard from")),
                     None => Some(format!("{r}: no status yet, {held} captures held")),
-                    Some(s) if s.state == AgentState::Finished && s.published == held => None,
+                    Some(s) if self.finished(r, s) => None,
+                    Some(s) if self.contradicted(r, s) => Some(format!(
+                        "{r}: its status says {} published, but {} arrived (a stale or forged \
+                         status; waiting for one that agrees)",
+                        s.published,
+                        self.contiguous(r)
+                    )),
                     Some(s) if s.state == AgentState::Finished => Some(format!(
-                        "{r}: finished, {held} of its {} captures held (asking for the rest)",
+                        "{r}: finished, {} of its {} captures held (asking for the rest)",
+                        self.held_of(r, s.published),
                         s.published
                     )),
                     Some(s) => Some(format!(
@@ -213,15 +341,26 @@ impl Store {
         out
     }
 
-    /// At least `robots` agents heard from, all finished, every capture held.
-    pub fn complete(&self, robots: usize) -> bool {
-        let ids = self.robots();
+    /// Finished, every capture it says it published held, and no more than
+    /// that arrived.
+    fn finished(&self, robot: &str, s: &AgentStatus) -> bool {
+        s.state == AgentState::Finished
+            && self.held_of(robot, s.published) == s.published
+            && !self.contradicted(robot, s)
+    }
+
+    /// The `expected` robots (or at least `robots` of those heard from) all
+    /// finished, with every capture held. A robot not expected (a stray or
+    /// forged id) is not waited for.
+    pub fn complete(&self, expected: Option<&[String]>, robots: usize) -> bool {
+        let ids = match expected {
+            Some(ids) => ids.to_vec(),
+            None => self.robots(),
+        };
         ids.len() >= robots
-            && ids.iter().all(|r| {
-                self.status(r).is_some_and(|s| {
-                    s.state == AgentState::Finished && s.published == self.capture_count(r)
-                })
-            })
+            && ids
+                .iter()
+                .all(|r| self.status(r).is_some_and(|s| self.finished(r, s)))
     }
 
     /// The centre of the target (in its frame) the agents of `robots` report
@@ -233,16 +372,13 @@ impl Store {
         let mut reported: Option<(String, u64, [f64; 3])> = None;
         let mut missing = 0usize;
         for robot in robots {
-            let Some(caps) = self.captures.get(*robot) else {
-                continue;
-            };
-            for (index, cap) in caps {
+            for (index, cap) in self.usable(robot).0 {
                 let Some(o) = &cap.observation else {
                     continue;
                 };
                 match (&reported, o.target_centre) {
                     (_, None) => missing += 1,
-                    (None, Some(c)) => reported = Some((robot.to_string(), *index, c)),
+                    (None, Some(c)) => reported = Some((robot.to_string(), index, c)),
                     (Some((r0, i0, c0)), Some(c)) => {
                         let d = (0..3).map(|k| (c[k] - c0[k]).powi(2)).sum::<f64>().sqrt();
                         anyhow::ensure!(
@@ -266,12 +402,11 @@ impl Store {
         // Only agents that report no centre at all get here: the corners seen.
         let mut seen: Vec<[f64; 3]> = Vec::new();
         for robot in robots {
-            let caps = self
-                .captures
-                .get(*robot)
-                .into_iter()
-                .flat_map(|c| c.values());
-            for p in caps.flat_map(|c| c.observation.iter().flat_map(|o| &o.target_points)) {
+            let (caps, _) = self.usable(robot);
+            for p in caps
+                .iter()
+                .flat_map(|(_, c)| c.observation.iter().flat_map(|o| &o.target_points))
+            {
                 if !seen.contains(p) {
                     seen.push(*p);
                 }
@@ -290,20 +425,15 @@ impl Store {
 
     /// A robot's captures as the pipeline takes them.
     pub fn observations(&self, robot: &str) -> anyhow::Result<RobotObservations> {
-        let caps = self
-            .captures
-            .get(robot)
-            .with_context(|| format!("no captures from robot '{robot}'"))?;
-        let first = caps
-            .values()
-            .next()
-            .with_context(|| format!("no captures from robot '{robot}'"))?;
+        let (caps, mut rejected) = self.usable(robot);
+        let (_, first) = caps
+            .first()
+            .with_context(|| format!("no usable captures from robot '{robot}'"))?;
         let c = &first.camera;
         let camera = CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist)
             .map_err(|e| anyhow::anyhow!("robot '{robot}': camera: {e}"))?;
         let mut observations = Vec::new();
-        let mut rejected = Vec::new();
-        for (index, cap) in caps {
+        for (index, cap) in &caps {
             if cap.camera != *c {
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
@@ -352,14 +482,11 @@ impl Store {
         &self,
         robot: &str,
     ) -> anyhow::Result<(Vec<b2b_pipeline::rgbd::RgbdView>, Vec<RejectedCapture>)> {
-        let caps = self
-            .captures
-            .get(robot)
-            .with_context(|| format!("no captures from robot '{robot}'"))?;
+        let (caps, mut rejected) = self.usable(robot);
+        anyhow::ensure!(!caps.is_empty(), "no usable captures from robot '{robot}'");
         let mut views = Vec::new();
-        let mut rejected = Vec::new();
         for (index, cap) in caps {
-            let row = *index as usize + 1;
+            let row = index as usize + 1;
             let Some(set) = &cap.features else {
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
@@ -533,30 +660,26 @@ mod tests {
     #[test]
     fn duplicates_are_dropped_and_restart_resumes() {
         let dir = tempfile::tempdir().unwrap();
+        let take = |s: &mut Store, seq, sample| {
+            s.accept(Sample::Capture(Envelope::new("robot1", seq, sample)))
+                .unwrap()
+        };
         {
             let mut s = Store::open(dir.path()).unwrap();
-            assert!(
-                s.accept(Sample::Capture(Envelope::new("robot1", 1, capture(0))))
-                    .unwrap()
-            );
-            assert!(
-                !s.accept(Sample::Capture(Envelope::new("robot1", 2, capture(0))))
-                    .unwrap()
-            );
-            assert!(
-                s.accept(Sample::Capture(Envelope::new("robot1", 3, capture(1))))
-                    .unwrap()
-            );
-            assert!(
+            assert_eq!(take(&mut s, 1, capture(0)), Arrival::New);
+            assert_eq!(take(&mut s, 2, capture(0)), Arrival::Duplicate);
+            assert_eq!(take(&mut s, 3, capture(1)), Arrival::New);
+            assert_eq!(
                 s.accept(Sample::Status(Envelope::new(
                     "robot1",
                     4,
                     status(AgentState::Finished, 3)
                 )))
-                .unwrap()
+                .unwrap(),
+                Arrival::New
             );
             assert_eq!(s.missing(), vec!["robot1".to_string()]);
-            assert!(!s.complete(1));
+            assert!(!s.complete(None, 1));
         }
         // A crash mid-write leaves half a line.
         let mut f = OpenOptions::new()
@@ -568,12 +691,139 @@ mod tests {
         let mut s = Store::open(dir.path()).unwrap();
         assert_eq!(s.skipped_lines, 1);
         assert_eq!(s.capture_count("robot1"), 2);
-        assert!(
-            s.accept(Sample::Capture(Envelope::new("robot1", 5, capture(2))))
-                .unwrap()
-        );
-        assert!(s.complete(1));
-        assert!(!s.complete(2));
+        assert_eq!(take(&mut s, 5, capture(2)), Arrival::New);
+        assert!(s.complete(None, 1));
+        assert!(!s.complete(None, 2));
         assert_eq!(s.observations("robot1").unwrap().observations.len(), 3);
+    }
+
+    /// A forged capture with an index the robot also sends, either first or
+    /// second: neither version is used, the conflict is journaled (a restart
+    /// sees it too), counted, and listed among the rejected captures; a
+    /// re-send of either version is a plain duplicate.
+    #[test]
+    fn a_conflicting_capture_is_kept_counted_and_neither_version_used() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut forged = capture(0);
+        forged.base_from_flange.t[0] += 0.05;
+        {
+            let mut s = Store::open(dir.path()).unwrap();
+            let mut take = |seq, c| {
+                s.accept(Sample::Capture(Envelope::new("robot1", seq, c)))
+                    .unwrap()
+            };
+            assert_eq!(take(1, forged.clone()), Arrival::New);
+            assert_eq!(take(2, capture(0)), Arrival::Conflict);
+            assert_eq!(take(3, capture(0)), Arrival::Duplicate);
+            assert_eq!(take(4, forged.clone()), Arrival::Duplicate);
+            assert_eq!(take(5, capture(1)), Arrival::New);
+        }
+        let mut s = Store::open(dir.path()).unwrap();
+        assert_eq!(s.conflict_count(), 1);
+        s.accept(Sample::Status(Envelope::new(
+            "robot1",
+            6,
+            status(AgentState::Finished, 2),
+        )))
+        .unwrap();
+        // Both indices arrived: the robot is complete, but index 0 is not used.
+        assert!(s.complete(None, 1));
+        let o = s.observations("robot1").unwrap();
+        assert_eq!(o.observations.len(), 1);
+        assert_eq!(o.observations[0].row, 2);
+        assert_eq!(o.rejected.len(), 1);
+        assert!(
+            o.rejected[0]
+                .reason
+                .starts_with("conflict: 2 different captures arrived with index 0"),
+            "{:?}",
+            o.rejected
+        );
+    }
+
+    /// A forged "finished, 0 published" status with a huge sequence number
+    /// neither completes the robot nor outranks the robot's own statuses.
+    #[test]
+    fn a_status_contradicted_by_the_captures_is_replaced_and_completes_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        let forged = || {
+            Sample::Status(Envelope::new(
+                "robot1",
+                1 << 50,
+                status(AgentState::Finished, 0),
+            ))
+        };
+        assert_eq!(s.accept(forged()).unwrap(), Arrival::New);
+        for i in 0..2 {
+            s.accept(Sample::Capture(Envelope::new("robot1", i + 1, capture(i))))
+                .unwrap();
+        }
+        assert!(!s.complete(None, 1));
+        assert!(s.waiting_for(None, 1)[0].contains("a stale or forged status"));
+        let real = Sample::Status(Envelope::new("robot1", 3, status(AgentState::Finished, 2)));
+        assert_eq!(s.accept(real).unwrap(), Arrival::New);
+        assert!(s.complete(None, 1));
+        // The forgery again: it outranks by sequence, but never completes or
+        // fails the robot, and the robot's next status takes over again.
+        assert_eq!(s.accept(forged()).unwrap(), Arrival::New);
+        assert!(!s.complete(None, 1));
+        let real = Sample::Status(Envelope::new("robot1", 4, status(AgentState::Finished, 2)));
+        assert_eq!(s.accept(real).unwrap(), Arrival::New);
+        assert!(s.complete(None, 1));
+    }
+
+    /// A status from a robot nobody expects, and a capture with a stray
+    /// index, neither stall nor complete a run; the stray index is not used.
+    #[test]
+    fn stray_statuses_and_indices_neither_stall_nor_complete_a_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        let ids = ["robot1".to_string(), "robot2".to_string()];
+        for robot in ["robot1", "robot2"] {
+            for i in 0..2 {
+                s.accept(Sample::Capture(Envelope::new(robot, i + 1, capture(i))))
+                    .unwrap();
+            }
+        }
+        s.accept(Sample::Capture(Envelope::new("robot1", 9, capture(999))))
+            .unwrap();
+        s.accept(Sample::Status(Envelope::new(
+            "robot9",
+            1,
+            status(AgentState::Capturing, 0),
+        )))
+        .unwrap();
+        for robot in ["robot1", "robot2"] {
+            assert!(!s.complete(Some(&ids), 2));
+            s.accept(Sample::Status(Envelope::new(
+                robot,
+                10,
+                status(AgentState::Finished, 2),
+            )))
+            .unwrap();
+        }
+        // robot9 is not waited for; robot1's index 999 does not count as one
+        // of its two.
+        assert!(s.complete(Some(&ids), 2));
+        assert!(s.missing().is_empty());
+        let o = s.observations("robot1").unwrap();
+        assert_eq!(o.observations.len(), 2);
+        assert!(
+            o.rejected[0]
+                .reason
+                .contains("index 999 is beyond the 2 captures"),
+            "{:?}",
+            o.rejected
+        );
+        // A robot that says it published 3 with index 2 missing is not complete.
+        s.accept(Sample::Status(Envelope::new(
+            "robot2",
+            11,
+            status(AgentState::Finished, 3),
+        )))
+        .unwrap();
+        assert!(!s.complete(Some(&ids), 2));
+        assert_eq!(s.missing(), ["robot2"]);
     }
 }

@@ -3,7 +3,7 @@
 //! with the likely cause named (never a confident wrong number).
 
 mod common;
-use common::state_beside;
+use common::{copy_dir, state_beside};
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -21,19 +21,6 @@ fn sim_copy() -> (tempfile::TempDir, PathBuf) {
     let dir = tmp.path().join("ds");
     copy_dir(&bundled("sim-checkerboard-2x12"), &dir);
     (tmp, dir)
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let dest = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &dest);
-        } else {
-            std::fs::copy(e.path(), &dest).unwrap();
-        }
-    }
 }
 
 /// Rewrites a captures.csv so that its qx, qy, qz, qw columns hold w, x, y, z.

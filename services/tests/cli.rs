@@ -391,25 +391,16 @@ fn rgbd_with_hand_eye_files() {
 }
 
 /// A copy of a dataset with every robot's `camera` block deleted from
-/// `dataset.json`; the other entries are symlinked.
+/// `dataset.json`.
 fn without_camera(dir: &Path) -> tempfile::TempDir {
     let tmp = tempfile::tempdir().unwrap();
+    common::copy_dir(dir, tmp.path());
     let text = std::fs::read_to_string(dir.join("dataset.json")).unwrap();
     let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
     for robot in json["robots"].as_array_mut().unwrap() {
         assert!(robot.as_object_mut().unwrap().remove("camera").is_some());
     }
     std::fs::write(tmp.path().join("dataset.json"), json.to_string()).unwrap();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let entry = entry.unwrap();
-        if entry.file_name() != "dataset.json" {
-            std::os::unix::fs::symlink(
-                entry.path().canonicalize().unwrap(),
-                tmp.path().join(entry.file_name()),
-            )
-            .unwrap();
-        }
-    }
     tmp
 }
 
@@ -555,6 +546,36 @@ fn verify_reports_iso_9283_for_repeated_locations() {
             "{l:?}"
         );
     }
+}
+
+/// A result whose covariance has positive variances but is not positive
+/// semi-definite (tx and ty correlated beyond 1) is refused by `verify`, which
+/// would otherwise report touches "within" an imaginary bound.
+#[test]
+fn verify_refuses_a_covariance_that_is_not_positive_semi_definite() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ds, result) = calibrate_committed(tmp.path());
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    let c = &mut json["covariance"];
+    let cross = 2.0 * (c[3][3].as_f64().unwrap() * c[4][4].as_f64().unwrap()).sqrt();
+    c[3][4] = cross.into();
+    c[4][3] = cross.into();
+    let forged = tmp.path().join("FORGED.json");
+    std::fs::write(&forged, serde_json::to_string_pretty(&json).unwrap()).unwrap();
+    let out = coordinator()
+        .args(["verify", "--result"])
+        .arg(&forged)
+        .arg("--touch-points")
+        .arg(ds.join("touch_points.csv"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("covariance") && stderr.contains("not positive semi-definite"),
+        "{stderr}"
+    );
 }
 
 /// One easy_handeye2 sample: `robot` and `tracking` as tf gives them.

@@ -39,6 +39,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use b2b_errors::excerpt;
+
 use b2b_calib::camera::CameraModel;
 use nalgebra::{
     Isometry3, Matrix3, Point2, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion,
@@ -147,7 +149,10 @@ impl MultimarkerConfig {
             file_error(
                 source_name,
                 n_line,
-                format!("expected the number of markers, found {n_text:?}"),
+                format!(
+                    "expected the number of markers, found \"{}\"",
+                    excerpt(n_text)
+                ),
             )
         })?;
         if n == 0 || n > MAX_MARKERS {
@@ -175,17 +180,22 @@ impl MultimarkerConfig {
             let tokens: Vec<&str> = id_text.split_whitespace().collect();
             let id = match tokens.as_slice() {
                 [t] if t.bytes().all(|b| b.is_ascii_digit()) => t.parse::<u64>().map_err(|_| {
-                    file_error(source_name, id_line, format!("barcode id {t} is too large"))
+                    file_error(
+                        source_name,
+                        id_line,
+                        format!("barcode id {} is too large", excerpt(t)),
+                    )
                 })?,
                 _ => {
                     return Err(file_error(
                         source_name,
                         id_line,
                         format!(
-                            "marker {}: {id_text:?} is not a barcode id; template pattern \
+                            "marker {}: \"{}\" is not a barcode id; template pattern \
                              markers are not supported, only barcode (matrix) ids that are \
                              ids of the dataset's dictionary",
-                            k + 1
+                            k + 1,
+                            excerpt(id_text)
                         ),
                     ));
                 }
@@ -216,7 +226,8 @@ impl MultimarkerConfig {
                         source_name,
                         w_line,
                         format!(
-                            "marker {id}: expected one positive width in millimetres, found {w_text:?}"
+                            "marker {id}: expected one positive width in millimetres, found \"{}\"",
+                            excerpt(w_text)
                         ),
                     ));
                 }
@@ -233,8 +244,9 @@ impl MultimarkerConfig {
                             source_name,
                             r_line,
                             format!(
-                                "marker {id}: row {} of the 3x4 transform must be 4 numbers, found {r_text:?}",
-                                rows.len() + 1
+                                "marker {id}: row {} of the 3x4 transform must be 4 numbers, found \"{}\"",
+                                rows.len() + 1,
+                                excerpt(r_text)
                             ),
                         ));
                     }
@@ -266,7 +278,10 @@ impl MultimarkerConfig {
             return Err(file_error(
                 source_name,
                 line,
-                format!("unexpected {extra:?} after the {n} markers the file declares"),
+                format!(
+                    "unexpected \"{}\" after the {n} markers the file declares",
+                    excerpt(extra)
+                ),
             ));
         }
         Ok(MultimarkerConfig {

@@ -160,6 +160,27 @@ fn file_error(text: &str) -> (usize, String) {
     }
 }
 
+/// A file that is not a multimarker file at all (a dataset pointing at a
+/// system file): the error says so and quotes at most a short excerpt of it.
+#[test]
+fn a_file_that_is_no_multimarker_file_is_quoted_only_in_excerpt() {
+    let text = "root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1:daemon:/usr/sbin:/usr/sbin/nologin\n";
+    let (line, reason) = file_error(text);
+    assert_eq!(line, 1);
+    assert!(reason.contains("number of markers"), "{reason}");
+    assert!(
+        reason.contains("found \"root:x:0:0:root:/root:/b…\""),
+        "{reason}"
+    );
+    assert!(!reason.contains("/bin/bash"), "{reason}");
+    let long = format!(
+        "1\n3\n40\n1 0 0 0\n0 1 0 0\n0 0 1 0\n{}\n",
+        "secret ".repeat(40)
+    );
+    let (_, reason) = file_error(&long);
+    assert!(reason.len() < 120, "{reason}");
+}
+
 #[test]
 fn malformed_files_name_the_line_and_the_problem() {
     let m = "1 0 0 0\n0 1 0 0\n0 0 1 0\n";

@@ -229,6 +229,58 @@ enum Command {
         #[arg(long, default_value = "coordinator-state")]
         state_dir: PathBuf,
     },
+    /// The platform's certificate authority and secured bus configurations.
+    Pki {
+        #[command(subcommand)]
+        command: PkiCommand,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum PkiCommand {
+    /// Creates a certificate authority, a key and certificate for the
+    /// coordinator and for each robot (the id is the certificate's name; keys
+    /// owner-only), and ready zenoh configurations DIR/coordinator.json5 and
+    /// DIR/<robot>.json5: mutual TLS, and access control (a robot publishes
+    /// only under its own id, only the coordinator publishes results).
+    Init {
+        /// The folder to write into (created; refused if it holds an authority).
+        #[arg(long)]
+        dir: PathBuf,
+        /// The carts' robot ids.
+        #[arg(long, value_delimiter = ',', required = true)]
+        robots: Vec<String>,
+        /// The coordinator's TLS endpoint, tls/HOST:PORT (HOST may be 0.0.0.0
+        /// to listen on every interface; then give --connect).
+        #[arg(long, default_value = b2b_services::pki::DEFAULT_TLS_ENDPOINT)]
+        listen: String,
+        /// Where the carts reach the coordinator (default: --listen).
+        #[arg(long)]
+        connect: Option<String>,
+    },
+    /// Adds a cart to an authority made by `pki init`: its key, certificate
+    /// and configuration, and DIR/coordinator.json5 rewritten to let it speak
+    /// (restart the coordinator to read it).
+    Add {
+        /// The folder `pki init` wrote (with the authority's key).
+        #[arg(long)]
+        dir: PathBuf,
+        /// The new cart's robot id.
+        #[arg(long)]
+        robot: String,
+    },
+}
+
+fn print_issued(issued: &b2b_services::pki::Issued, dir: &std::path::Path) {
+    for (who, config) in &issued.configs {
+        println!("{who}: --zenoh {}", config.display());
+    }
+    println!(
+        "wrote {} files into {}; keep {} off the carts",
+        issued.files.len(),
+        dir.display(),
+        b2b_services::pki::CA_KEY
+    );
 }
 
 /// `--refine-intrinsics` is for the methods that fit the cameras.
@@ -280,8 +332,8 @@ fn main() -> std::process::ExitCode {
             finish_recording(recorder);
             print_result(&result);
             println!(
-                "messages: {} accepted, {} duplicates dropped, {} rejected",
-                counters.accepted, counters.duplicates, counters.rejected
+                "messages: {} accepted, {} duplicates dropped, {} conflicting captures (not used), {} rejected",
+                counters.accepted, counters.duplicates, counters.conflicts, counters.rejected
             );
             println!("wrote {}", out.display());
             Ok(())
@@ -468,6 +520,31 @@ fn main() -> std::process::ExitCode {
             json,
             state_dir,
         } => history::print_listing(&state_dir, robot.as_deref(), json),
+        Command::Pki {
+            command:
+                PkiCommand::Init {
+                    dir,
+                    robots,
+                    listen,
+                    connect,
+                },
+        } => {
+            let endpoints =
+                b2b_services::pki::Endpoints::new(&listen, connect.as_deref().unwrap_or(&listen))?;
+            let issued = b2b_services::pki::init(&dir, &robots, &endpoints)?;
+            print_issued(&issued, &dir);
+            Ok(())
+        }
+        Command::Pki {
+            command: PkiCommand::Add { dir, robot },
+        } => {
+            let issued = b2b_services::pki::add(&dir, &robot)?;
+            print_issued(&issued, &dir);
+            println!(
+                "restart the coordinator with its rewritten configuration to let {robot} speak"
+            );
+            Ok(())
+        }
     })
 }
 

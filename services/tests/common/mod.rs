@@ -57,6 +57,21 @@ pub fn net() -> Net {
     }
 }
 
+/// Copies a folder with everything in it (a dataset reads only files inside
+/// its own folder, so a variant of one is a copy, not symlinks).
+pub fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dest = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &dest);
+        } else {
+            std::fs::copy(e.path(), &dest).unwrap();
+        }
+    }
+}
+
 /// A child process killed (and reaped) when dropped.
 pub struct Killed(pub std::process::Child);
 

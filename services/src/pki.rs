@@ -1,0 +1,500 @@
+//! The platform's own certificate authority and the secured bus:
+//! `coordinator pki init --dir DIR --robots robot1,robot2`.
+//!
+//! One authority (`ca.pem`, `ca.key`) issues a certificate to the coordinator
+//! and to each cart; a certificate's common name is its holder's id (the robot
+//! id, or [`COORDINATOR`]). Keys are written readable by their owner only.
+//! Beside them go ready zenoh configurations, `coordinator.json5` and
+//! `<robot>.json5`:
+//!
+//! - **Mutual TLS on every link.** The coordinator listens on one TLS endpoint
+//!   and nothing else; a cart connects to it and listens on nothing. Both sides
+//!   present their certificate and accept only certificates of this authority
+//!   (`enable_mtls`), so a peer without one cannot connect. A cart also checks
+//!   that the coordinator's certificate names the host it connected to (the
+//!   coordinator's certificate names `localhost`, `127.0.0.1` and the host of
+//!   `--connect`).
+//! - **Access control, default deny.** Each process filters what it receives
+//!   by the certificate name of the link it came on: the coordinator takes
+//!   puts and replies under `b2b/agent/<id>/**` only from the certificate named
+//!   `<id>`, and a cart takes puts and replies under `b2b/coordinator/**` only
+//!   from the certificate named `coordinator`. A certificate of this authority
+//!   whose name is not in a configuration (a cart removed from the platform)
+//!   can say nothing to it.
+//!
+//! Behind that, the coordinator still checks that each message's envelope
+//! names the robot of its key ([`b2b_protocol::messages::Envelope::validate`]),
+//! so a wrong access-control rule does not let one cart speak for another.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use b2b_protocol::messages::{COORDINATOR, KEY_ROOT, validate_robot_id};
+use rcgen::{
+    BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
+    Issuer, KeyPair, KeyUsagePurpose, SanType,
+};
+use serde_json::{Value, json};
+
+/// The authority's certificate, which every process trusts.
+pub const CA_CERT: &str = "ca.pem";
+/// The authority's key: needed only to issue certificates; keep it off the carts.
+pub const CA_KEY: &str = "ca.key";
+/// The common name of the authority's certificate.
+pub const CA_NAME: &str = "b2b calibration platform authority";
+/// The coordinator's TLS endpoint when `--listen` is not given.
+pub const DEFAULT_TLS_ENDPOINT: &str = "tls/127.0.0.1:7447";
+
+/// What `pki init` wrote.
+#[derive(Debug, Clone)]
+pub struct Issued {
+    /// Every file written, in order.
+    pub files: Vec<PathBuf>,
+    /// The zenoh configuration of each holder (the coordinator first).
+    pub configs: Vec<(String, PathBuf)>,
+}
+
+/// Where the coordinator listens and where carts connect.
+#[derive(Debug, Clone)]
+pub struct Endpoints {
+    /// The coordinator's listening endpoint (`tls/HOST:PORT`).
+    pub listen: String,
+    /// What carts connect to; `listen` when the coordinator is reached at the
+    /// address it binds (not behind `0.0.0.0`).
+    pub connect: String,
+    /// The host of `connect`, which the coordinator's certificate names.
+    pub connect_host: String,
+}
+
+impl Endpoints {
+    /// Listens and connects on `endpoint` (a `tls/` locator).
+    pub fn at(endpoint: &str) -> anyhow::Result<Endpoints> {
+        Endpoints::new(endpoint, endpoint)
+    }
+
+    pub fn new(listen: &str, connect: &str) -> anyhow::Result<Endpoints> {
+        for (what, e) in [("--listen", listen), ("--connect", connect)] {
+            anyhow::ensure!(
+                e.starts_with("tls/") && e.len() > 4,
+                "{what} {e}: the secured bus takes a TLS endpoint, tls/HOST:PORT"
+            );
+        }
+        let host = connect["tls/".len()..]
+            .rsplit_once(':')
+            .map(|(host, _)| host.trim_start_matches('[').trim_end_matches(']'))
+            .filter(|h| !h.is_empty())
+            .with_context(|| format!("--connect {connect}: expected tls/HOST:PORT"))?;
+        anyhow::ensure!(
+            host != "0.0.0.0" && host != "::",
+            "--connect {connect}: carts cannot connect to {host}; give the coordinator's address"
+        );
+        Ok(Endpoints {
+            listen: listen.to_owned(),
+            connect: connect.to_owned(),
+            connect_host: host.to_owned(),
+        })
+    }
+}
+
+/// Creates the authority and every holder's key, certificate and zenoh
+/// configuration in `dir` (created if needed). Refuses a folder that already
+/// holds an authority: its certificates are in use.
+pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> anyhow::Result<Issued> {
+    anyhow::ensure!(!robots.is_empty(), "--robots: name at least one robot");
+    for (i, r) in robots.iter().enumerate() {
+        validate_robot_id(r).with_context(|| format!("--robots: robot id '{r}'"))?;
+        anyhow::ensure!(
+            r != COORDINATOR,
+            "--robots: '{COORDINATOR}' is the coordinator's name, not a robot id"
+        );
+        anyhow::ensure!(
+            !robots[..i].contains(r),
+            "--robots: robot id '{r}' is given twice"
+        );
+    }
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.to_owned());
+    anyhow::ensure!(
+        !dir.join(CA_KEY).exists(),
+        "{} already holds an authority ({CA_KEY}); its certificates may be in use. \
+         Choose another folder, or remove this one to start the platform's trust over",
+        dir.display()
+    );
+    let mut files = Vec::new();
+
+    let ca_key = KeyPair::generate().context("generating the authority's key")?;
+    let ca_cert = ca_params()?.self_signed(&ca_key)?;
+    files.push(write_public(&dir.join(CA_CERT), &ca_cert.pem())?);
+    files.push(write_secret(&dir.join(CA_KEY), &ca_key.serialize_pem())?);
+    let issuer = Issuer::new(ca_params()?, ca_key);
+
+    let mut configs = Vec::new();
+    for holder in std::iter::once(COORDINATOR).chain(robots.iter().map(String::as_str)) {
+        configs.push(issue(&dir, &issuer, holder, robots, endpoints, &mut files)?);
+    }
+    Ok(Issued { files, configs })
+}
+
+/// Adds a cart to the authority in `dir`: its key, certificate and
+/// configuration, and the coordinator's configuration rewritten to let it
+/// speak (the coordinator restarts to read it). The endpoints are the ones
+/// `init` wrote. A cart already there is refused: its certificate cannot be
+/// revoked (see the README on replacing one).
+pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
+    validate_robot_id(robot).with_context(|| format!("--robot '{robot}'"))?;
+    anyhow::ensure!(
+        robot != COORDINATOR,
+        "--robot: '{COORDINATOR}' is the coordinator's name, not a robot id"
+    );
+    let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.to_owned());
+    let key_file = dir.join(CA_KEY);
+    let ca_key = std::fs::read_to_string(&key_file)
+        .with_context(|| format!("cannot read the authority's key {}", key_file.display()))?;
+    let ca_key = KeyPair::from_pem(&ca_key)
+        .with_context(|| format!("{}: not a private key", key_file.display()))?;
+    let coordinator_file = dir.join(format!("{COORDINATOR}.json5"));
+    let text = std::fs::read_to_string(&coordinator_file)
+        .with_context(|| format!("cannot read {}", coordinator_file.display()))?;
+    let config: Value = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not a configuration `pki init` wrote",
+            coordinator_file.display()
+        )
+    })?;
+    let mut robots: Vec<String> = config["access_control"]["subjects"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|s| s["id"].as_str().map(str::to_owned))
+        .collect();
+    anyhow::ensure!(
+        !robots.iter().any(|r| r == robot),
+        "'{robot}' already has a certificate from this authority; a certificate cannot be \
+         revoked, so replacing one means starting the trust over (README, \"The secured bus\")"
+    );
+    let listen = config["listen"]["endpoints"][0]
+        .as_str()
+        .with_context(|| format!("{}: no listen endpoint", coordinator_file.display()))?;
+    let first = robots
+        .first()
+        .with_context(|| format!("{}: no robots", coordinator_file.display()))?;
+    let cart_file = dir.join(format!("{first}.json5"));
+    let cart: Value = serde_json::from_str(
+        &std::fs::read_to_string(&cart_file)
+            .with_context(|| format!("cannot read {}", cart_file.display()))?,
+    )
+    .with_context(|| {
+        format!(
+            "{}: not a configuration `pki init` wrote",
+            cart_file.display()
+        )
+    })?;
+    let connect = cart["connect"]["endpoints"][0]
+        .as_str()
+        .with_context(|| format!("{}: no connect endpoint", cart_file.display()))?;
+    let endpoints = Endpoints::new(listen, connect)?;
+    robots.push(robot.to_owned());
+    let issuer = Issuer::new(ca_params()?, ca_key);
+    let mut files = Vec::new();
+    let configs = vec![issue(
+        &dir, &issuer, robot, &robots, &endpoints, &mut files,
+    )?];
+    let text = serde_json::to_string_pretty(&coordinator_config(&dir, &robots, &endpoints))?;
+    std::fs::write(&coordinator_file, text + "\n")
+        .with_context(|| format!("cannot write {}", coordinator_file.display()))?;
+    files.push(coordinator_file);
+    Ok(Issued { files, configs })
+}
+
+/// The authority's own certificate parameters (the same for issuing later).
+fn ca_params() -> anyhow::Result<CertificateParams> {
+    let mut params = CertificateParams::new(Vec::<String>::new())?;
+    params.distinguished_name = name(CA_NAME);
+    params.is_ca = IsCa::Ca(BasicConstraints::Constrained(0));
+    params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
+    Ok(params)
+}
+
+/// Issues `holder`'s key and certificate and writes its configuration (a
+/// coordinator's over `robots`); returns the configuration.
+fn issue(
+    dir: &Path,
+    issuer: &Issuer<'_, KeyPair>,
+    holder: &str,
+    robots: &[String],
+    endpoints: &Endpoints,
+    files: &mut Vec<PathBuf>,
+) -> anyhow::Result<(String, PathBuf)> {
+    let key = KeyPair::generate().with_context(|| format!("generating {holder}'s key"))?;
+    // The names a cart may reach the coordinator by: loopback, for
+    // one-machine setups and tests, and the host carts connect to.
+    let mut names = vec!["localhost".to_owned(), "127.0.0.1".to_owned()];
+    if holder == COORDINATOR && !names.contains(&endpoints.connect_host) {
+        names.push(endpoints.connect_host.clone());
+    }
+    let mut params = CertificateParams::new(names)?;
+    params.subject_alt_names.push(SanType::DnsName(
+        format!("{holder}.b2b").try_into().context("holder name")?,
+    ));
+    params.distinguished_name = name(holder);
+    params.key_usages = vec![
+        KeyUsagePurpose::DigitalSignature,
+        KeyUsagePurpose::KeyEncipherment,
+    ];
+    params.extended_key_usages = vec![
+        ExtendedKeyUsagePurpose::ServerAuth,
+        ExtendedKeyUsagePurpose::ClientAuth,
+    ];
+    let cert = params.signed_by(&key, issuer)?;
+    files.push(write_public(
+        &dir.join(format!("{holder}.pem")),
+        &cert.pem(),
+    )?);
+    files.push(write_secret(
+        &dir.join(format!("{holder}.key")),
+        &key.serialize_pem(),
+    )?);
+    let config = if holder == COORDINATOR {
+        coordinator_config(dir, robots, endpoints)
+    } else {
+        cart_config(dir, holder, endpoints)
+    };
+    let config_file = dir.join(format!("{holder}.json5"));
+    let text = serde_json::to_string_pretty(&config)?;
+    files.push(write_public(&config_file, &(text + "\n"))?);
+    Ok((holder.to_owned(), config_file))
+}
+
+fn name(common_name: &str) -> DistinguishedName {
+    let mut dn = DistinguishedName::new();
+    dn.push(DnType::CommonName, common_name);
+    dn
+}
+
+/// The TLS section of `holder`'s configuration.
+fn tls(dir: &Path, holder: &str) -> Value {
+    let file = |name: String| dir.join(name).display().to_string();
+    json!({
+        "root_ca_certificate": file(CA_CERT.to_owned()),
+        "listen_private_key": file(format!("{holder}.key")),
+        "listen_certificate": file(format!("{holder}.pem")),
+        "connect_private_key": file(format!("{holder}.key")),
+        "connect_certificate": file(format!("{holder}.pem")),
+        "enable_mtls": true,
+        "verify_name_on_connect": true,
+    })
+}
+
+/// Every declaration (subscribers, queryables, queries, liveliness) under the
+/// service's keys, both ways: who may *say* what is decided by puts and replies.
+fn declarations_rule() -> Value {
+    json!({
+        "id": "declarations",
+        "permission": "allow",
+        "flows": ["ingress", "egress"],
+        "messages": [
+            "declare_subscriber", "declare_queryable", "query",
+            "liveliness_token", "liveliness_query", "declare_liveliness_subscriber",
+        ],
+        "key_exprs": [format!("{KEY_ROOT}/**")],
+    })
+}
+
+fn says(id: &str, flow: &str, key: String) -> Value {
+    json!({
+        "id": id,
+        "permission": "allow",
+        "flows": [flow],
+        "messages": ["put", "delete", "reply"],
+        "key_exprs": [key],
+    })
+}
+
+fn subject(id: &str) -> Value {
+    json!({ "id": id, "cert_common_names": [id] })
+}
+
+/// The coordinator: listens on the TLS endpoint only; takes what a cart says
+/// only under that cart's own keys; says things only under its own.
+fn coordinator_config(dir: &Path, robots: &[String], endpoints: &Endpoints) -> Value {
+    let mut rules = vec![
+        declarations_rule(),
+        says(
+            "coordinator says",
+            "egress",
+            format!("{KEY_ROOT}/coordinator/**"),
+        ),
+    ];
+    let mut policies = vec![json!({
+        "rules": ["declarations", "coordinator says"],
+        "subjects": robots,
+    })];
+    for r in robots {
+        let rule = format!("{r} says");
+        rules.push(says(&rule, "ingress", format!("{KEY_ROOT}/agent/{r}/**")));
+        policies.push(json!({ "rules": [rule], "subjects": [r] }));
+    }
+    json!({
+        "mode": "peer",
+        "listen": { "endpoints": [endpoints.listen] },
+        "connect": { "endpoints": [] },
+        "scouting": { "multicast": { "enabled": false } },
+        "transport": { "link": { "tls": tls(dir, COORDINATOR) } },
+        "access_control": {
+            "enabled": true,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": robots.iter().map(|r| subject(r)).collect::<Vec<_>>(),
+            "policies": policies,
+        },
+    })
+}
+
+/// A cart: connects to the coordinator and listens on nothing; takes what is
+/// said under the coordinator's keys only from the coordinator; says things
+/// only under its own keys.
+fn cart_config(dir: &Path, robot: &str, endpoints: &Endpoints) -> Value {
+    json!({
+        "mode": "peer",
+        "listen": { "endpoints": [] },
+        "connect": { "endpoints": [endpoints.connect] },
+        "scouting": { "multicast": { "enabled": false } },
+        "transport": { "link": { "tls": tls(dir, robot) } },
+        "access_control": {
+            "enabled": true,
+            "default_permission": "deny",
+            "rules": [
+                declarations_rule(),
+                says("coordinator says", "ingress", format!("{KEY_ROOT}/coordinator/**")),
+                says(&format!("{robot} says"), "egress", format!("{KEY_ROOT}/agent/{robot}/**")),
+            ],
+            "subjects": [subject(COORDINATOR)],
+            "policies": [{
+                "rules": ["declarations", "coordinator says", format!("{robot} says")],
+                "subjects": [COORDINATOR],
+            }],
+        },
+    })
+}
+
+fn write_public(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
+    std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(path.to_owned())
+}
+
+/// Writes a private key readable and writable by its owner only (created so,
+/// never widened afterwards).
+fn write_secret(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(0o600);
+    }
+    let mut file = options
+        .open(path)
+        .with_context(|| format!("cannot create {}", path.display()))?;
+    file.write_all(text.as_bytes())
+        .and_then(|_| file.sync_all())
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(path.to_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn robots() -> Vec<String> {
+        vec!["robot1".into(), "robot2".into()]
+    }
+
+    #[test]
+    fn init_writes_an_authority_owner_only_keys_and_configs_zenoh_reads() {
+        let dir = tempfile::tempdir().unwrap();
+        let issued = init(
+            dir.path(),
+            &robots(),
+            &Endpoints::at(DEFAULT_TLS_ENDPOINT).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(issued.configs.len(), 3);
+        for f in &issued.files {
+            let mode = {
+                use std::os::unix::fs::PermissionsExt;
+                std::fs::metadata(f).unwrap().permissions().mode() & 0o777
+            };
+            if f.extension().is_some_and(|e| e == "key") {
+                assert_eq!(mode, 0o600, "{}", f.display());
+            }
+        }
+        for (_, config) in &issued.configs {
+            zenoh::Config::from_file(config)
+                .unwrap_or_else(|e| panic!("{}: {e}", config.display()));
+        }
+        // A second authority over the first is refused.
+        let e = init(
+            dir.path(),
+            &robots(),
+            &Endpoints::at(DEFAULT_TLS_ENDPOINT).unwrap(),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("already holds an authority"), "{e}");
+    }
+
+    #[test]
+    fn add_issues_a_cart_and_lets_it_speak_to_the_coordinator() {
+        let dir = tempfile::tempdir().unwrap();
+        let at = Endpoints::new("tls/0.0.0.0:7447", "tls/10.0.0.5:7447").unwrap();
+        init(dir.path(), &robots(), &at).unwrap();
+        let added = add(dir.path(), "robot3").unwrap();
+        assert_eq!(added.configs[0].0, "robot3");
+        let read = |f: &str| -> Value {
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join(f)).unwrap()).unwrap()
+        };
+        let c = read("coordinator.json5");
+        let subjects: Vec<&str> = c["access_control"]["subjects"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["id"].as_str().unwrap())
+            .collect();
+        assert_eq!(subjects, ["robot1", "robot2", "robot3"]);
+        assert_eq!(c["listen"]["endpoints"][0], "tls/0.0.0.0:7447");
+        assert_eq!(
+            read("robot3.json5")["connect"]["endpoints"][0],
+            "tls/10.0.0.5:7447"
+        );
+        let e = add(dir.path(), "robot3").unwrap_err().to_string();
+        assert!(e.contains("already has a certificate"), "{e}");
+        let e = format!("{:#}", add(&dir.path().join("none"), "robot4").unwrap_err());
+        assert!(e.contains("cannot read the authority's key"), "{e}");
+    }
+
+    #[test]
+    fn bad_robot_lists_and_endpoints_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let at = Endpoints::at(DEFAULT_TLS_ENDPOINT).unwrap();
+        for (robots, what) in [
+            (vec![], "at least one"),
+            (vec!["robot1", "robot1"], "twice"),
+            (vec!["coordinator"], "coordinator's name"),
+            (vec!["a/b"], "robot id 'a/b'"),
+        ] {
+            let robots: Vec<String> = robots.into_iter().map(String::from).collect();
+            let e = format!("{:#}", init(dir.path(), &robots, &at).unwrap_err());
+            assert!(e.contains(what), "{robots:?}: {e}");
+        }
+        let e = Endpoints::at("tcp/127.0.0.1:7447").unwrap_err().to_string();
+        assert!(e.contains("TLS endpoint"), "{e}");
+        let e = Endpoints::at("tls/0.0.0.0:7447").unwrap_err().to_string();
+        assert!(e.contains("give the coordinator's address"), "{e}");
+        let e = Endpoints::at("tls/nohost").unwrap_err().to_string();
+        assert!(e.contains("tls/HOST:PORT"), "{e}");
+        let ok = Endpoints::new("tls/0.0.0.0:7447", "tls/[fd00::2]:7447").unwrap();
+        assert_eq!(ok.connect_host, "fd00::2");
+    }
+}

@@ -1,0 +1,369 @@
+//! The secured bus end to end: `coordinator pki init`, then `coordinator run`
+//! and two agents over mutual TLS with access control, each its own process,
+//! while rogue peers, each its own process too, try what the issue saw work on
+//! the open bus:
+//!
+//! - robot2's certificate, with its own access control removed (a rogue
+//!   controls its own configuration), runs `agent run --robot robot1` on a copy
+//!   of robot1's captures moved by 5 cm, and publishes forged statuses ("robot1
+//!   finished, 0 published", with a huge sequence number) and a forged result
+//!   ("coordinator" says T = [9, 9, 9]);
+//! - a peer without a certificate runs `agent run --robot robot1` on the same
+//!   moved copy.
+//!
+//! The result must equal the offline calibration of the untouched dataset, and
+//! the real agents must receive the real result.
+
+mod common;
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use b2b_protocol::messages::{AgentState, AgentStatus, COORDINATOR, Envelope};
+use b2b_services::bus::{Role, ZenohBus};
+use common::{Killed, assert_same, free_port, offline_result_of};
+use zenoh::Wait;
+
+fn dataset() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
+}
+
+fn bin(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_agent"))
+        .with_file_name(format!("{name}{}", std::env::consts::EXE_SUFFIX))
+}
+
+/// `dataset()` copied into `to`, robot1's flange positions moved by 5 cm in x.
+fn moved_copy(to: &Path) {
+    common::copy_dir(&dataset(), to);
+    let captures = to.join("robot1/captures.csv");
+    let text = std::fs::read_to_string(&captures).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let tx = header.iter().position(|h| *h == "tx").unwrap();
+    let mut out = header.join(",") + "\n";
+    for line in lines {
+        let mut cells: Vec<String> = line.split(',').map(str::to_owned).collect();
+        let v: f64 = cells[tx].parse().unwrap();
+        cells[tx] = format!("{:?}", v + 0.05);
+        out += &(cells.join(",") + "\n");
+    }
+    std::fs::write(&captures, out).unwrap();
+}
+
+/// A configuration derived from `base` by `edit` (the files are JSON).
+fn derived(base: &Path, to: &Path, edit: impl FnOnce(&mut serde_json::Value)) -> PathBuf {
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(base).unwrap()).unwrap();
+    edit(&mut v);
+    std::fs::write(to, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+    to.to_owned()
+}
+
+/// `agent run --replay`, one capture every `pace_ms`, waiting up to 60 s for
+/// the result (answering the coordinator's history queries meanwhile).
+fn agent(robot: &str, dataset: &Path, config: &Path, state: &Path, pace_ms: u32) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["run", "--quiet", "--robot", robot, "--replay"])
+        .arg(dataset)
+        .arg("--zenoh")
+        .arg(config)
+        .arg("--state-dir")
+        .arg(state)
+        .args(["--wait-result-s", "60", "--pace-ms", &pace_ms.to_string()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn put(config: &Path, key: &str, payload: &Path) -> Child {
+    Command::new(bin("b2b-bus-put"))
+        .arg("--zenoh")
+        .arg(config)
+        .args(["--key", key, "--count", "150", "--every-ms", "200"])
+        .arg("--payload")
+        .arg(payload)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// Waits for a child to exit; whether it succeeded, and its stdout then stderr.
+fn exited(child: Child, limit: Duration) -> (bool, String) {
+    let start = Instant::now();
+    let mut child = Killed(child);
+    while child.0.try_wait().unwrap().is_none() {
+        assert!(start.elapsed() < limit, "no exit within {limit:?}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let mut text = String::new();
+    for stream in [
+        child
+            .0
+            .stdout
+            .take()
+            .map(|s| Box::new(s) as Box<dyn std::io::Read>),
+        child
+            .0
+            .stderr
+            .take()
+            .map(|s| Box::new(s) as Box<dyn std::io::Read>),
+    ]
+    .into_iter()
+    .flatten()
+    {
+        let mut stream = stream;
+        let _ = stream.read_to_string(&mut text);
+    }
+    (child.0.wait().unwrap().success(), text)
+}
+
+/// Waits for a child to exit successfully and returns its stdout.
+fn finished(mut child: Child, what: &str, limit: Duration) -> String {
+    let start = Instant::now();
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            let out = child.wait_with_output().unwrap();
+            assert!(
+                out.status.success(),
+                "{what} failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            return String::from_utf8_lossy(&out.stdout).into_owned();
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("{what} did not finish within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// How many peers a session with `config` is connected to after a while.
+fn peers_of(config: &Path) -> usize {
+    let bus = ZenohBus::open(Some(config), Role::Agent).unwrap();
+    std::thread::sleep(Duration::from_secs(2));
+    bus.session().info().peers_zid().wait().count()
+}
+
+/// What a run with the rogues gave: the result and the offline one, the
+/// coordinator's printout, and the real agents' printouts.
+struct Outcome {
+    /// `None` when the coordinator failed.
+    live: Option<b2b_protocol::CalibrationResult>,
+    offline: b2b_protocol::CalibrationResult,
+    /// Its stdout, then its stderr.
+    coordinator: String,
+    agents: Vec<String>,
+}
+
+#[test]
+fn rogue_peers_change_nothing_on_the_secured_bus() {
+    let o = run_with_rogues(true);
+    let live = o
+        .live
+        .as_ref()
+        .unwrap_or_else(|| panic!("{}", o.coordinator));
+    assert_same(live, &o.offline);
+    assert!(
+        o.coordinator.contains(" 0 conflicting captures"),
+        "{}",
+        o.coordinator
+    );
+    // Each real agent received the real result, not the forged one.
+    let t = o.offline.base1_from_base2.t;
+    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
+    assert_eq!(o.agents.len(), 2);
+    for said in &o.agents {
+        assert!(said.contains(&real), "{said} (expected {real})");
+    }
+}
+
+/// The control: the same run with the coordinator's access control removed
+/// (TLS still on). robot2's certificate now speaks for robot1, and it shows:
+/// its moved captures contradict the real ones, which the journal catches as
+/// conflicts and keeps out, so the result cannot be the clean one (or, with
+/// most of robot1's indices in conflict, there is none: "too few captures").
+/// That the secured run shows none of it is the access control's doing.
+#[test]
+fn without_access_control_the_same_rogues_are_heard() {
+    let o = run_with_rogues(false);
+    let heard = match &o.live {
+        None => o.coordinator.contains("robot1") && o.coordinator.contains("captures"),
+        Some(live) => {
+            !o.coordinator.contains(" 0 conflicting captures")
+                && live.captures.used != o.offline.captures.used
+        }
+    };
+    assert!(heard, "{}", o.coordinator);
+}
+
+fn run_with_rogues(access_control: bool) -> Outcome {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let pki = dir.join("pki");
+    let port = free_port();
+    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["pki", "init", "--robots", "robot1,robot2", "--dir"])
+        .arg(&pki)
+        .args(["--listen", &format!("tls/127.0.0.1:{port}")])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("robot1: --zenoh "), "{stdout}");
+    // A third cart added later (`pki add`): its certificate is the authority's.
+    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["pki", "add", "--robot", "robot3", "--dir"])
+        .arg(&pki)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    // robot2's certificate without its access control; and no certificate.
+    let rogue = derived(&pki.join("robot2.json5"), &dir.join("rogue.json5"), |v| {
+        v.as_object_mut().unwrap().remove("access_control");
+    });
+    let anonymous = derived(
+        &pki.join("robot1.json5"),
+        &dir.join("anonymous.json5"),
+        |v| {
+            v.as_object_mut().unwrap().remove("access_control");
+            let tls = v["transport"]["link"]["tls"].as_object_mut().unwrap();
+            for k in [
+                "listen_private_key",
+                "listen_certificate",
+                "connect_private_key",
+                "connect_certificate",
+            ] {
+                tls.remove(k);
+            }
+            tls.insert("enable_mtls".into(), false.into());
+        },
+    );
+    let moved = dir.join("moved");
+    moved_copy(&moved);
+
+    let offline = offline_result_of(dir, &dataset(), "board");
+    let mut forged_result = offline.clone();
+    forged_result.method = "forged".into();
+    forged_result.base1_from_base2.t = [9.0, 9.0, 9.0];
+    let forged_result_file = dir.join("forged-result.json");
+    std::fs::write(
+        &forged_result_file,
+        serde_json::to_vec(&Envelope::new(COORDINATOR, 1 << 50, forged_result)).unwrap(),
+    )
+    .unwrap();
+    let forged_status_file = dir.join("forged-status.json");
+    let status = AgentStatus {
+        state: AgentState::Finished,
+        good: 0,
+        rejected: 0,
+        published: 0,
+        rotation_diversity_deg: 0.0,
+        enough_data: false,
+        message: "forged".into(),
+    };
+    std::fs::write(
+        &forged_status_file,
+        serde_json::to_vec(&Envelope::new("robot1", 1 << 50, status)).unwrap(),
+    )
+    .unwrap();
+
+    let coordinator_cfg = if access_control {
+        pki.join("coordinator.json5")
+    } else {
+        derived(
+            &pki.join("coordinator.json5"),
+            &dir.join("open.json5"),
+            |v| {
+                v.as_object_mut().unwrap().remove("access_control");
+            },
+        )
+    };
+    let coordinator = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+        .arg(&coordinator_cfg)
+        .arg("--state-dir")
+        .arg(dir.join("coordinator-state"))
+        .arg("--out")
+        .arg(dir.join("RESULT.json"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The rogues first, so that what they say is there before the real agents.
+    let _rogues: Vec<Killed> = vec![
+        // Paced, so that they are still publishing once connected.
+        Killed(agent(
+            "robot1",
+            &moved,
+            &rogue,
+            &dir.join("rogue-state"),
+            300,
+        )),
+        Killed(agent(
+            "robot1",
+            &moved,
+            &anonymous,
+            &dir.join("anon-state"),
+            300,
+        )),
+        Killed(put(&rogue, "b2b/coordinator/result", &forged_result_file)),
+        Killed(put(&rogue, "b2b/agent/robot1/status", &forged_status_file)),
+    ];
+    // A peer without a certificate is never connected; one with is (the
+    // check can fail).
+    assert_eq!(peers_of(&anonymous), 0);
+    assert_eq!(peers_of(&pki.join("robot1.json5")), 1);
+    assert_eq!(peers_of(&pki.join("robot3.json5")), 1);
+    std::thread::sleep(Duration::from_secs(2));
+    let a1 = agent(
+        "robot1",
+        &dataset(),
+        &pki.join("robot1.json5"),
+        &dir.join("a1"),
+        0,
+    );
+    let a2 = agent(
+        "robot2",
+        &dataset(),
+        &pki.join("robot2.json5"),
+        &dir.join("a2"),
+        0,
+    );
+    let (ok, printed) = exited(coordinator, Duration::from_secs(180));
+    let live = ok.then(|| {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("RESULT.json")).unwrap()).unwrap()
+    });
+    // Without a result the agents wait in vain: they are killed.
+    let agents = [(a1, "agent robot1"), (a2, "agent robot2")]
+        .into_iter()
+        .filter_map(|(mut a, what)| {
+            if ok {
+                return Some(finished(a, what, Duration::from_secs(60)));
+            }
+            let _ = a.kill();
+            let _ = a.wait();
+            None
+        })
+        .collect();
+    Outcome {
+        live,
+        offline,
+        coordinator: printed,
+        agents,
+    }
+}
