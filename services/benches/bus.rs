@@ -3,7 +3,10 @@
 //! 1. zenoh pose-message latency on loopback: this process publishes a flange-pose
 //!    capture message on `b2b/bench/ping`, a separate `b2b-bus-echo` process sends
 //!    it back, and half the round trip is the one-way latency. Reported as p50 /
-//!    p99 (goal p99 <= 1 ms).
+//!    p99 (goal p99 <= 1 ms), on plain TCP and on the secured bus (`coordinator
+//!    pki init`: mutual TLS and access control, so this process speaks as the
+//!    coordinator and the echo as cart robot1), each with the time from opening a
+//!    session to its first peer (the TCP or TLS handshake, median of 5).
 //! 2. A full live replay of `datasets/sim-checkerboard-2x12`: coordinator and two
 //!    agents as processes, detection and the joint solve included, wall time until
 //!    the coordinator has written its result.
@@ -39,7 +42,9 @@ fn configs(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     .expect("write config");
     std::fs::write(
         &connect,
-        format!(r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:0"] }}, connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#),
+        // Listening on nothing, as a cart on the secured bus: the two
+        // transports' sessions differ only in their links.
+        format!(r#"{{ mode: "peer", listen: {{ endpoints: [] }}, connect: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#),
     )
     .expect("write config");
     (listen, connect)
@@ -76,25 +81,79 @@ fn pose_message() -> Vec<u8> {
     serde_json::to_vec(&Envelope::new("robot1", 1, body)).expect("serialise")
 }
 
-fn latency(messages: usize) {
+/// The plain bus, or the secured one with its keys.
+#[derive(Clone, Copy, PartialEq)]
+enum Transport {
+    Tcp,
+    Tls,
+}
+
+/// Configurations for this process and the other one, and the keys each may
+/// speak on: (listen, connect, ping prefix, pong key).
+fn bus_for(
+    transport: Transport,
+    dir: &Path,
+) -> (std::path::PathBuf, std::path::PathBuf, String, String) {
+    match transport {
+        Transport::Tcp => {
+            let (listen, connect) = configs(dir);
+            (listen, connect, "b2b/bench".into(), "b2b/bench/pong".into())
+        }
+        Transport::Tls => {
+            let endpoint = format!("tls/127.0.0.1:{}", free_port());
+            let endpoints = b2b_services::pki::Endpoints::at(&endpoint).expect("endpoint");
+            let pki = dir.join("pki");
+            b2b_services::pki::init(&pki, &["robot1".to_owned()], &endpoints).expect("pki");
+            (
+                pki.join("coordinator.json5"),
+                pki.join("robot1.json5"),
+                "b2b/coordinator/bench".into(),
+                "b2b/agent/robot1/bench/pong".into(),
+            )
+        }
+    }
+}
+
+/// Median time from opening a session with `connect` to its first peer (the
+/// listener with `listen` running), over `runs` sessions.
+fn handshake_ms(listen: &Path, connect: &Path, runs: usize) -> f64 {
+    use b2b_services::bus::{Role, config, open};
+    let _listener = open(config(Some(listen), Role::Coordinator).expect("config")).expect("listen");
+    let mut ms = Vec::with_capacity(runs);
+    for _ in 0..runs {
+        let t0 = Instant::now();
+        let s = open(config(Some(connect), Role::Agent).expect("config")).expect("session");
+        while s.info().peers_zid().wait().next().is_none() {
+            assert!(t0.elapsed() < Duration::from_secs(10), "never connected");
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        let _ = s.close().wait();
+    }
+    percentile(&mut ms, 0.5)
+}
+
+fn latency(messages: usize, transport: Transport) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (listen, connect) = configs(dir.path());
+    let (listen, connect, prefix, pong_key) = bus_for(transport, dir.path());
+    let handshake = handshake_ms(&listen, &connect, 5);
     let session = b2b_services::bus::open(
         b2b_services::bus::config(Some(&listen), b2b_services::bus::Role::Coordinator)
             .expect("config"),
     )
     .expect("session");
     let pongs = session
-        .declare_subscriber("b2b/bench/pong")
+        .declare_subscriber(pong_key.clone())
         .wait()
         .expect("subscribe");
     let ping = session
-        .declare_publisher("b2b/bench/ping")
+        .declare_publisher(format!("{prefix}/ping"))
         .wait()
         .expect("publisher");
     let mut echo = Command::new(env!("CARGO_BIN_EXE_b2b-bus-echo"))
         .arg("--zenoh")
         .arg(&connect)
+        .args(["--prefix", &prefix, "--pong", &pong_key])
         .stderr(Stdio::null())
         .spawn()
         .expect("spawn echo");
@@ -121,12 +180,17 @@ fn latency(messages: usize) {
             _ => panic!("a ping was lost"),
         }
     }
-    let _ = session.put("b2b/bench/stop", "stop").wait();
+    let _ = session.put(format!("{prefix}/stop"), "stop").wait();
     let _ = echo.wait();
     println!(
-        "zenoh pose message ({} bytes) between processes, one-way over loopback, {} messages: p50 {:.0} us, p99 {:.0} us, max {:.0} us",
+        "zenoh pose message ({} bytes) between processes, one-way over loopback, {}, {} messages: session to first peer {:.1} ms; p50 {:.0} us, p99 {:.0} us, max {:.0} us",
         payload.len(),
+        match transport {
+            Transport::Tcp => "plain TCP",
+            Transport::Tls => "mutual TLS + access control",
+        },
         messages,
+        handshake,
         percentile(&mut one_way_us, 0.5),
         percentile(&mut one_way_us, 0.99),
         one_way_us.iter().copied().fold(0.0, f64::max)
@@ -182,6 +246,8 @@ fn replay(runs: usize) {
 
 fn main() {
     let full = std::env::args().any(|a| a == "--bench");
-    latency(if full { 2000 } else { 50 });
+    for transport in [Transport::Tcp, Transport::Tls] {
+        latency(if full { 2000 } else { 50 }, transport);
+    }
     replay(if full { 3 } else { 1 });
 }

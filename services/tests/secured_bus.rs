@@ -53,6 +53,23 @@ fn moved_copy(to: &Path) {
     std::fs::write(&captures, out).unwrap();
 }
 
+/// `coordinator pki ARGS --dir DIR`, which must succeed; its stdout.
+fn pki_command(args: &[&str], dir: &Path) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .arg("pki")
+        .args(args)
+        .arg("--dir")
+        .arg(dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
 /// A configuration derived from `base` by `edit` (the files are JSON).
 fn derived(base: &Path, to: &Path, edit: impl FnOnce(&mut serde_json::Value)) -> PathBuf {
     let mut v: serde_json::Value =
@@ -207,30 +224,14 @@ fn run_with_rogues(access_control: bool) -> Outcome {
     let dir = tmp.path();
     let pki = dir.join("pki");
     let port = free_port();
-    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["pki", "init", "--robots", "robot1,robot2", "--dir"])
-        .arg(&pki)
-        .args(["--listen", &format!("tls/127.0.0.1:{port}")])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let listen = format!("tls/127.0.0.1:{port}");
+    let stdout = pki_command(
+        &["init", "--robots", "robot1,robot2", "--listen", &listen],
+        &pki,
     );
-    let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("robot1: --zenoh "), "{stdout}");
     // A third cart added later (`pki add`): its certificate is the authority's.
-    let out = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["pki", "add", "--robot", "robot3", "--dir"])
-        .arg(&pki)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    pki_command(&["add", "--robot", "robot3"], &pki);
 
     // robot2's certificate without its access control; and no certificate.
     let rogue = derived(&pki.join("robot2.json5"), &dir.join("rogue.json5"), |v| {

@@ -1,7 +1,9 @@
-//! Benchmark helper: echoes every message on `b2b/bench/ping` back on
-//! `b2b/bench/pong`, as a separate process, until `b2b/bench/stop` arrives or
-//! `--seconds` pass. Used by `services/benches/bus.rs` to measure zenoh latency
-//! between processes.
+//! Benchmark helper: echoes every message on `PREFIX/ping` back on
+//! `--pong` (default `PREFIX/pong`), as a separate process, until `PREFIX/stop`
+//! arrives or `--seconds` pass; `PREFIX` is `b2b/bench` unless given. Used by
+//! `services/benches/bus.rs` to measure zenoh latency between processes, on the
+//! plain and on the secured bus (where a cart may say things only under its own
+//! keys, so the pong goes there).
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -22,6 +24,12 @@ struct Cli {
     /// Give up after this many seconds.
     #[arg(long, default_value_t = 60)]
     seconds: u64,
+    /// Where the pings (`PREFIX/ping`) and the stop (`PREFIX/stop`) come from.
+    #[arg(long, default_value = "b2b/bench")]
+    prefix: String,
+    /// Where the pongs go (default `PREFIX/pong`).
+    #[arg(long)]
+    pong: Option<String>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -29,25 +37,27 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     b2b_services::run_main(|| {
         let session = bus::open(bus::config(Some(&cli.zenoh), bus::Role::Agent)?)?;
+        let prefix = &cli.prefix;
+        let pong_key = cli.pong.clone().unwrap_or_else(|| format!("{prefix}/pong"));
+        let (ping_key, stop_key) = (format!("{prefix}/ping"), format!("{prefix}/stop"));
         let pong = session
-            .declare_publisher("b2b/bench/pong")
+            .declare_publisher(pong_key)
             .wait()
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let ping = session
-            .declare_subscriber("b2b/bench/**")
+            .declare_subscriber(format!("{prefix}/**"))
             .wait()
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         let deadline = Instant::now() + Duration::from_secs(cli.seconds);
         while Instant::now() < deadline {
             if let Ok(Some(sample)) = ping.recv_timeout(Duration::from_millis(100)) {
-                match sample.key_expr().as_str() {
-                    "b2b/bench/ping" => {
-                        pong.put(sample.payload().clone())
-                            .wait()
-                            .map_err(|e| anyhow::anyhow!("{e}"))?;
-                    }
-                    "b2b/bench/stop" => break,
-                    _ => {}
+                let key = sample.key_expr().as_str();
+                if key == ping_key {
+                    pong.put(sample.payload().clone())
+                        .wait()
+                        .map_err(|e| anyhow::anyhow!("{e}"))?;
+                } else if key == stop_key {
+                    break;
                 }
             }
         }
