@@ -86,7 +86,8 @@ fn load_everything(fx: &Fixture) {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 200, ..ProptestConfig::default() })]
+    // CI's short campaign; PROPTEST_CASES=100000 runs a long one.
+    #![proptest_config(ProptestConfig { cases: cases(200), ..ProptestConfig::default() })]
 
     #[test]
     fn random_bytes_in_any_file_never_panic(
@@ -177,4 +178,12 @@ proptest! {
         let gt_back = load_ground_truth(out.path()).unwrap().unwrap();
         prop_assert_eq!(bits(&gt_back.base1_from_base2.unwrap()), bits(&pose));
     }
+}
+
+/// `PROPTEST_CASES` when set, else `default` (CI's short campaign).
+fn cases(default: u32) -> u32 {
+    std::env::var("PROPTEST_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }

@@ -29,6 +29,14 @@ pub enum Sample {
     HandEye(Envelope<HandEyeUpdate>),
 }
 
+/// The 1-based row a capture index is reported as (an index near `u64::MAX`,
+/// which no agent sends but anyone can, saturates).
+fn row_of(index: u64) -> usize {
+    usize::try_from(index)
+        .unwrap_or(usize::MAX)
+        .saturating_add(1)
+}
+
 /// The journal file name inside the state folder.
 pub const JOURNAL: &str = "samples.jsonl";
 
@@ -274,7 +282,7 @@ impl Store {
                 Some(reason) => left_out.push(RejectedCapture {
                     robot: robot.to_owned(),
                     image: cap.image.clone(),
-                    row: Some(*index as usize + 1),
+                    row: Some(row_of(*index)),
                     reason,
                 }),
                 None => usable.push((*index, cap)),
@@ -438,14 +446,14 @@ impl Store {
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
                     image: cap.image.clone(),
-                    row: Some(*index as usize + 1),
+                    row: Some(row_of(*index)),
                     reason: "camera intrinsics differ from the robot's first capture".into(),
                 });
                 continue;
             }
             match (&cap.observation, &cap.rejected) {
                 (Some(o), _) => observations.push(Observation {
-                    row: *index as usize + 1,
+                    row: row_of(*index),
                     image: cap.image.clone(),
                     camera_from_target: o.camera_from_target.to_isometry("T_camera_target")?,
                     board: BoardCapture {
@@ -460,7 +468,7 @@ impl Store {
                 (None, reason) => rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
                     image: cap.image.clone(),
-                    row: Some(*index as usize + 1),
+                    row: Some(row_of(*index)),
                     reason: reason.clone().unwrap_or_default(),
                 }),
             }
@@ -486,7 +494,7 @@ impl Store {
         anyhow::ensure!(!caps.is_empty(), "no usable captures from robot '{robot}'");
         let mut views = Vec::new();
         for (index, cap) in caps {
-            let row = index as usize + 1;
+            let row = row_of(index);
             let Some(set) = &cap.features else {
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
