@@ -885,6 +885,18 @@ fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
     })
 }
 
+impl IceoryxFrames {
+    /// A received colour frame as a `LiveFrame` (its shared-memory sample
+    /// released at once), with the depth frame of the same number when there is
+    /// a depth stream.
+    fn live_frame(&mut self, frame: b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
+        let mut live = to_live(&frame)?;
+        drop(frame);
+        live.depth = self.depth_of(live.number, Duration::from_secs(2))?;
+        Ok(live)
+    }
+}
+
 impl FrameSource for IceoryxFrames {
     fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame> {
         let deadline = Instant::now() + timeout;
@@ -900,10 +912,7 @@ impl FrameSource for IceoryxFrames {
                 .wait_next(left.min(Duration::from_millis(200)))?
                 && frame.header().timestamp_ns >= after_ns
             {
-                let mut live = to_live(&frame)?;
-                drop(frame);
-                live.depth = self.depth_of(live.number, Duration::from_secs(2))?;
-                return Ok(live);
+                return self.live_frame(frame);
             }
         }
     }
@@ -912,10 +921,7 @@ impl FrameSource for IceoryxFrames {
         if let Some(frame) = self.subscriber.latest()?
             && frame.header().timestamp_ns >= after_ns
         {
-            let mut live = to_live(&frame)?;
-            drop(frame);
-            live.depth = self.depth_of(live.number, Duration::from_secs(2))?;
-            return Ok(live);
+            return self.live_frame(frame);
         }
         self.frame_after(after_ns, timeout)
     }

@@ -154,8 +154,15 @@ impl Store {
         }
     }
 
+    /// Classifies a sample and keeps it accordingly.
     fn apply(&mut self, sample: Sample) -> Arrival {
         let arrival = self.classify(&sample);
+        self.keep(sample, arrival);
+        arrival
+    }
+
+    /// Keeps a sample already classified as `arrival`.
+    fn keep(&mut self, sample: Sample, arrival: Arrival) {
         match (arrival, sample) {
             (Arrival::Duplicate, _) => {}
             (Arrival::Conflict, Sample::Capture(e)) => {
@@ -186,14 +193,14 @@ impl Store {
                 self.hand_eye.insert(e.robot, (e.seq, e.body));
             }
         }
-        arrival
     }
 
     /// Keeps a sample: written and flushed to the journal first (a conflicting
     /// capture too: nothing that arrived is lost), then used.
     pub fn accept(&mut self, sample: Sample) -> anyhow::Result<Arrival> {
-        if self.classify(&sample) == Arrival::Duplicate {
-            return Ok(Arrival::Duplicate);
+        let arrival = self.classify(&sample);
+        if arrival == Arrival::Duplicate {
+            return Ok(arrival);
         }
         let mut line = serde_json::to_vec(&sample)?;
         line.push(b'\n');
@@ -201,7 +208,8 @@ impl Store {
             .write_all(&line)
             .and_then(|_| self.journal.sync_data())
             .with_context(|| format!("cannot append to {}", self.path.display()))?;
-        Ok(self.apply(sample))
+        self.keep(sample, arrival);
+        Ok(arrival)
     }
 
     /// The robots heard from, in id order.
