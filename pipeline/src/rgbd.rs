@@ -330,6 +330,8 @@ pub struct CameraPairFit {
     pub spread_m: f64,
     /// Inlier points in camera 1.
     pub inlier_points1: Vec<Point3<f64>>,
+    /// The same inliers' points in camera 2.
+    pub inlier_points2: Vec<Point3<f64>>,
 }
 
 /// RANSAC + Umeyama over matched 3-D points; fewer than `options.min_inliers`
@@ -368,6 +370,12 @@ pub fn fit_camera_pair(
         .filter(|(_, k)| **k)
         .map(|(p, _)| *p)
         .collect();
+    let inlier_points2: Vec<Point3<f64>> = points2
+        .iter()
+        .zip(&fit.inliers)
+        .filter(|(_, k)| **k)
+        .map(|(p, _)| *p)
+        .collect();
     let inliers = inlier_points1.len();
     if inliers < need {
         return Err(PipelineError::TooFewRansacInliers { inliers, need });
@@ -389,6 +397,7 @@ pub fn fit_camera_pair(
         rms_m: fit.rms,
         spread_m,
         inlier_points1,
+        inlier_points2,
     })
 }
 
@@ -647,12 +656,17 @@ pub fn rgbd_base_to_base_with_hand_eyes(
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
     let (v1, rej1) = load_views(ds, &ids[0], options)?;
     let (v2, rej2) = load_views(ds, &ids[1], options)?;
+    let cameras = [
+        RobotSetup::from_dataset(ds, &ids[0])?.camera,
+        RobotSetup::from_dataset(ds, &ids[1])?.camera,
+    ];
     let mut rejected = rej1;
     rejected.extend(rej2);
     let detect_ms = start.elapsed().as_secs_f64() * 1e3;
     let mut run = rgbd_from_views(
         [&ids[0], &ids[1]],
         [&v1, &v2],
+        [&cameras[0], &cameras[1]],
         rejected,
         flange_from_camera,
         hand_eye_covariance,
@@ -666,10 +680,13 @@ pub fn rgbd_base_to_base_with_hand_eyes(
 /// The RGB-D method on views already made (a dataset's, or what the agents
 /// published): every pair of robot 1's and robot 2's views, then the robust
 /// combination. `rejected` are captures the caller already could not use; they are
-/// reported with the ones no accepted pair used.
+/// reported with the ones no accepted pair used. `cameras` are the views' camera
+/// models, for each view's reprojection RMS under the result
+/// ([`CaptureSummary::per_capture`], see [`view_fits`]).
 pub fn rgbd_from_views(
     ids: [&str; 2],
     views: [&[RgbdView]; 2],
+    cameras: [&CameraModel; 2],
     rejected: Vec<RejectedCapture>,
     flange_from_camera: [Iso3; 2],
     hand_eye_covariance: Option<[Matrix6<f64>; 2]>,
@@ -683,8 +700,9 @@ pub fn rgbd_from_views(
     let mut pair_views = Vec::new();
     let mut inlier_centres = Vec::new();
     let mut flanges = Vec::new();
-    for a in v1 {
-        for b in v2 {
+    let mut inlier_points = Vec::new();
+    for (ia, a) in v1.iter().enumerate() {
+        for (ib, b) in v2.iter().enumerate() {
             let mut pe = PairEstimate {
                 rows: [a.row, b.row],
                 matches: 0,
@@ -729,6 +747,12 @@ pub fn rgbd_from_views(
                     pair_views.push([a.row, b.row]);
                     inlier_centres.push((pairs.len(), c));
                     flanges.push((a.base_from_flange, b.base_from_flange));
+                    inlier_points.push(PairInliers {
+                        views: [ia, ib],
+                        points1: fit.inlier_points1,
+                        points2: fit.inlier_points2,
+                        outliers: pe.lifted - fit.inliers,
+                    });
                 }
                 Err(e) => pe.reason = Some(crate::error_chain(&e)),
             }
@@ -805,6 +829,21 @@ pub fn rgbd_from_views(
             .collect()
     };
     let (used1, used2) = (used_rows(0), used_rows(1));
+    let accepted_inliers: Vec<&PairInliers> = inlier_points
+        .iter()
+        .zip(&combined.verdicts)
+        .filter(|(_, v)| v.is_ok())
+        .map(|(p, _)| p)
+        .collect();
+    let per_capture = view_fits(
+        ids,
+        views,
+        cameras,
+        flange_from_camera,
+        &combined.base1_from_base2,
+        &centre,
+        &accepted_inliers,
+    );
     let mut rejected = rejected;
     for (k, (views, used)) in [(v1, &used1), (v2, &used2)].into_iter().enumerate() {
         for v in views.iter().filter(|v| !used.contains(&v.row)) {
@@ -850,7 +889,7 @@ pub fn rgbd_from_views(
             .into_iter()
             .collect(),
             rejected,
-            per_capture: Vec::new(),
+            per_capture,
         },
         timings_ms: Timings {
             detect: 0.0,
@@ -868,6 +907,99 @@ pub fn rgbd_from_views(
         pairs,
         scene_centre_in_base1: centre,
     })
+}
+
+/// One fitted pair's inlier matches: which views (indices into robot 1's and robot
+/// 2's views), their 3-D points in either camera, and the lifted matches RANSAC
+/// left out.
+struct PairInliers {
+    views: [usize; 2],
+    points1: Vec<Point3<f64>>,
+    points2: Vec<Point3<f64>>,
+    outliers: usize,
+}
+
+/// Each view's fit under the result, as `RESULT.json`'s `per_capture` carries it
+/// for the board methods:
+/// - `rms_px`: over the accepted pairs the view is in, each inlier's point seen by
+///   the other camera, carried into this camera through the result
+///   (`camera_from_other = (base_from_flange · flange_from_camera)⁻¹ ·
+///   base1_from_base2 (or its inverse) · other_base_from_flange ·
+///   other_flange_from_camera`) and projected, against the projection of its own
+///   point (its feature, undistorted and lifted). `None` when no accepted pair
+///   used the view;
+/// - `outlier_corners`: the lifted matches RANSAC rejected in those pairs;
+/// - `view_direction`: from the scene centre (the accepted inliers' mean) to the
+///   camera, in base 1's axes (robot 2's cameras carried there by the result),
+///   the RGB-D method's stand-in for the target frame.
+fn view_fits(
+    ids: [&str; 2],
+    views: [&[RgbdView]; 2],
+    cameras: [&CameraModel; 2],
+    flange_from_camera: [Iso3; 2],
+    base1_from_base2: &Iso3,
+    centre_in_base1: &Point3<f64>,
+    pairs: &[&PairInliers],
+) -> Vec<b2b_protocol::CaptureFit> {
+    // Each camera in base 1.
+    let in_base1 = |k: usize, v: &RgbdView| -> Iso3 {
+        let base_from_camera = v.base_from_flange * flange_from_camera[k];
+        if k == 0 {
+            base_from_camera
+        } else {
+            base1_from_base2 * base_from_camera
+        }
+    };
+    let mut sums: [Vec<(f64, usize, usize)>; 2] = [
+        vec![(0.0, 0, 0); views[0].len()],
+        vec![(0.0, 0, 0); views[1].len()],
+    ];
+    for p in pairs {
+        let [a, b] = p.views;
+        let camera1_from_camera2 = in_base1(0, &views[0][a]).inverse() * in_base1(1, &views[1][b]);
+        let camera2_from_camera1 = camera1_from_camera2.inverse();
+        for (p1, p2) in p.points1.iter().zip(&p.points2) {
+            let through = [
+                (
+                    0,
+                    a,
+                    cameras[0].project(p1),
+                    cameras[0].project(&(camera1_from_camera2 * p2)),
+                ),
+                (
+                    1,
+                    b,
+                    cameras[1].project(p2),
+                    cameras[1].project(&(camera2_from_camera1 * p1)),
+                ),
+            ];
+            for (k, i, seen, predicted) in through {
+                if let (Some(s), Some(q)) = (seen, predicted) {
+                    sums[k][i].0 += (s - q).norm_squared();
+                    sums[k][i].1 += 1;
+                }
+            }
+        }
+        sums[0][a].2 += p.outliers;
+        sums[1][b].2 += p.outliers;
+    }
+    let mut fits = Vec::with_capacity(views[0].len() + views[1].len());
+    for k in 0..2 {
+        for (v, (sq, n, outliers)) in views[k].iter().zip(&sums[k]) {
+            let d = (in_base1(k, v).translation.vector - centre_in_base1.coords)
+                .try_normalize(1e-12)
+                .unwrap_or_else(Vector3::z);
+            fits.push(b2b_protocol::CaptureFit {
+                robot: ids[k].to_owned(),
+                row: v.row,
+                image: (!v.image.is_empty()).then(|| v.image.clone()),
+                rms_px: (*n > 0).then(|| (sq / *n as f64).sqrt()),
+                outlier_corners: *outliers,
+                view_direction: [d.x, d.y, d.z],
+            });
+        }
+    }
+    fits
 }
 
 /// The RGB-D method on a dataset, with each robot's hand-eye from the dataset's

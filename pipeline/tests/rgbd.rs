@@ -123,6 +123,36 @@ fn sim_rgbd_boxes_meets_the_touch_goal() {
     );
     assert_eq!(run.result.method, "rgbd");
     assert!(accepted >= 3, "only {accepted} pairs accepted");
+    // Every view has its fit under the result, as the board methods give: the
+    // report's residual and coverage panels come from it.
+    let per = &run.result.captures.per_capture;
+    let views: usize = ds.robots.iter().map(|r| r.captures.len()).sum();
+    assert_eq!(per.len(), views, "one per_capture entry per view");
+    for c in per {
+        let used = run
+            .pairs
+            .iter()
+            .any(|p| p.accepted && p.rows[if c.robot == ds.robots[0].id { 0 } else { 1 }] == c.row);
+        eprintln!(
+            "{} row {}: rms {:?} px, {} outliers, from {:.2?}",
+            c.robot, c.row, c.rms_px, c.outlier_corners, c.view_direction
+        );
+        assert_eq!(c.rms_px.is_some(), used, "{} row {}", c.robot, c.row);
+        // Features localise to about a pixel; the arms' errors (0.3 mm at 0.5-1 m)
+        // add a fraction of one.
+        if let Some(rms) = c.rms_px {
+            assert!(
+                rms > 0.05 && rms < 3.0,
+                "{} row {}: {rms} px",
+                c.robot,
+                c.row
+            );
+        }
+        let d = nalgebra::Vector3::from(c.view_direction);
+        assert!((d.norm() - 1.0).abs() < 1e-9);
+        // The cameras look down at the table.
+        assert!(d.z > 0.3, "{} row {}: {d:?}", c.robot, c.row);
+    }
     assert!(
         report.touch_mean_mm <= 5.0,
         "touch mean {:.2} mm",

@@ -190,8 +190,8 @@ pub struct CaptureSummary {
     pub used: BTreeMap<String, usize>,
     pub rejected: Vec<RejectedCapture>,
     /// Each capture the fit saw, in each robot's order: how well the result
-    /// explains it, and where it was seen from (optional; the RGB-D method and
-    /// older files have none). Reports draw their per-capture panels from it.
+    /// explains it, and where it was seen from (optional; older files have
+    /// none). Reports draw their per-capture panels from it.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub per_capture: Vec<CaptureFit>,
 }
@@ -206,11 +206,15 @@ pub struct CaptureFit {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image: Option<String>,
     /// RMS of its inlier corners under the result; `null` when it was left out
-    /// before the fit or has no inlier corner.
+    /// before the fit or has no inlier corner. The RGB-D method: of its inlier
+    /// features, each matched point carried from the other camera through the
+    /// result and projected.
     pub rms_px: Option<f64>,
-    /// Corners the robust stage rejected.
+    /// Corners the robust stage rejected (the RGB-D method: matches RANSAC
+    /// rejected in the accepted pairs the capture is in).
     pub outlier_corners: usize,
-    /// Unit vector from the target's origin to the camera, in the target frame.
+    /// Unit vector from the target's origin to the camera, in the target frame
+    /// (the RGB-D method: from the scene centre, in base 1's axes).
     pub view_direction: [f64; 3],
 }
 

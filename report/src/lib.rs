@@ -1339,7 +1339,7 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
     ];
 
     let no_captures = "No per-capture details: this RESULT.json has no captures.per_capture \
-                       (the RGB-D method and files written before it existed); give \
+                       (files written before it existed); give \
                        HANDEYE.json files with --hand-eye.";
     let plots: Vec<(&str, &str, Option<String>, &str)> = vec![
         (

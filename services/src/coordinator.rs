@@ -155,6 +155,7 @@ fn compute_rgbd(
     let mut run = b2b_pipeline::rgbd::rgbd_from_views(
         ids,
         [&v1, &v2],
+        [&observations[0].camera, &observations[1].camera],
         rejected,
         [flange_from_camera[0], flange_from_camera[1]],
         Some([covariance[0], covariance[1]]),

@@ -204,4 +204,43 @@ fn no_usable_capture_prints_the_cause_once() {
     let cause = "too few captures: 0, need at least 3";
     assert_eq!(stderr.matches(cause).count(), 1, "{stderr}");
     assert!(stderr.contains("robot1"), "{stderr}");
+    // The fakes' image data ends after a few rows. Each is refused with the
+    // decoder's reason, and no decoder prints lines of its own (libpng, which
+    // OpenCV decodes PNGs with, printed "libpng error: ..." for each).
+    assert!(!stderr.contains("libpng"), "{stderr}");
+}
+
+/// A PNG whose image data was damaged after it was written (one byte flipped in
+/// its IDAT chunk, checksums left as they were): the capture is rejected with the
+/// file and what is wrong with it, the others calibrate, and no decoder prints
+/// lines of its own.
+#[test]
+fn a_damaged_png_is_named_without_decoder_noise() {
+    let (_tmp, dir) = sim_copy();
+    let png = dir.join("robot1/images/003.png");
+    let mut bytes = std::fs::read(&png).unwrap();
+    let idat = bytes.windows(4).position(|w| w == b"IDAT").unwrap();
+    bytes[idat + 40] ^= 0x5A;
+    std::fs::write(&png, bytes).unwrap();
+    let out_dir = tempfile::tempdir().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["handeye", "--dataset"])
+        .arg(&dir)
+        .args(["--robot", "robot1", "--out"])
+        .arg(out_dir.path().join("h.json"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    eprintln!("exit {:?}: {}", o.status.code(), stderr.trim());
+    // The other captures calibrate; the damaged one is a rejected capture.
+    assert!(o.status.success(), "{stderr}");
+    let he: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.path().join("h.json")).unwrap())
+            .unwrap();
+    let rejected = he["captures"]["rejected"].to_string();
+    assert!(
+        rejected.contains("003.png") && rejected.contains("PNG decoder: Corrupt deflate stream"),
+        "{rejected}"
+    );
+    assert!(!stderr.contains("libpng"), "{stderr}");
 }

@@ -376,6 +376,14 @@ fn rgbd_with_hand_eye_files() {
     for i in 0..3 {
         assert!((r.hand_eye["robot1"].t[i] - he.flange_from_camera.t[i]).abs() < 1e-12);
     }
+    // Each view's fit is in the result, so its report draws every panel.
+    assert_eq!(r.captures.per_capture.len(), 10, "{:?}", r.captures);
+    let inputs = b2b_report::ReportInputs::from_files(&result, None).unwrap();
+    inputs.validate().unwrap();
+    let report_dir = tempfile::tempdir().unwrap();
+    let written = b2b_report::write_report(&inputs, report_dir.path()).unwrap();
+    let html = std::fs::read_to_string(&written.index).unwrap();
+    assert!(!html.contains("No per-capture details"), "{html}");
     // One robot's file only: the missing robot is named.
     fails_cleanly(&mut calibrate("rgbd", &[&files[0]]), "robot2");
     // The same robot twice.

@@ -412,6 +412,28 @@ pub fn load_depth(path: &Path) -> Result<DepthImage, VisionError> {
     if let Some(size) = crate::image::header_size(&bytes) {
         crate::image::check_stated_size(&name, size, None)?;
     }
+    if let Some(png) = crate::image::decode_png(&bytes, &name)? {
+        if png.channels != 1 || !png.sixteen_bit {
+            return Err(VisionError::UnsupportedImage {
+                source_name: name,
+                what: format!(
+                    "depth image must be 16-bit single-channel, got a {}-bit PNG with {} channel(s)",
+                    if png.sixteen_bit { 16 } else { 8 },
+                    png.channels
+                ),
+            });
+        }
+        let data = png
+            .data
+            .chunks_exact(2)
+            .map(|b| u16::from_be_bytes([b[0], b[1]]))
+            .collect();
+        return Ok(DepthImage {
+            width: png.width,
+            height: png.height,
+            data,
+        });
+    }
     let buf = Vector::<u8>::from_slice(&bytes);
     let mat = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_UNCHANGED).map_err(|e| {
         VisionError::CorruptImage {

@@ -1,10 +1,11 @@
 //! Loading images as 8-bit grey.
 //!
-//! Files are read with `std::fs` and decoded with `imdecode`, not `imread`: `imread`
-//! answers a missing file, a directory and a corrupt PNG alike with an empty `Mat`,
-//! while reading the bytes ourselves lets each failure say what it was. Decoding uses
-//! `IMREAD_UNCHANGED` so that a 16-bit depth PNG is recognised and refused instead of
-//! being silently scaled down to 8 bits.
+//! Files are read with `std::fs`, not `imread`: `imread` answers a missing file, a
+//! directory and a corrupt PNG alike with an empty `Mat`, while reading the bytes
+//! ourselves lets each failure say what it was. PNGs are decoded by the `png` crate
+//! ([`decode_png`]: libpng would print its own lines on stderr for a corrupt one),
+//! other formats by `imdecode`. Both keep 16 bits, so that a 16-bit depth PNG is
+//! recognised and refused instead of being silently scaled down to 8 bits.
 
 use std::path::Path;
 
@@ -215,6 +216,123 @@ pub fn png_chunks_complete(bytes: &[u8]) -> Result<(), String> {
     }
 }
 
+/// A PNG decoded by the `png` crate, not by OpenCV's libpng: libpng answers a
+/// corrupt file (bad checksums, broken compressed data, a fake) by printing its own
+/// lines on stderr besides failing, where this returns the reason as an error that
+/// names the file. Palette and low-bit images are expanded to 8 bits; 16-bit
+/// samples are kept, big-endian as PNG stores them.
+pub(crate) struct DecodedPng {
+    pub width: u32,
+    pub height: u32,
+    /// 1 grey, 2 grey + alpha, 3 RGB, 4 RGBA.
+    pub channels: usize,
+    pub sixteen_bit: bool,
+    /// Row-major samples, no padding between rows.
+    pub data: Vec<u8>,
+}
+
+/// Decodes `bytes` when they start with the PNG signature (`None` otherwise).
+/// The caller has checked the size the header states.
+pub(crate) fn decode_png(
+    bytes: &[u8],
+    source_name: &str,
+) -> Result<Option<DecodedPng>, VisionError> {
+    const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
+    if bytes.len() < 8 || bytes[..8] != PNG_SIGNATURE {
+        return Ok(None);
+    }
+    let corrupt = |reason: String| VisionError::CorruptImage {
+        source_name: source_name.to_owned(),
+        reason,
+    };
+    png_chunks_complete(bytes).map_err(corrupt)?;
+    // Eight bytes per pixel is RGBA at 16 bits, the most a PNG pixel takes.
+    let limits = png::Limits {
+        bytes: usize::try_from(MAX_IMAGE_PIXELS * 8).unwrap_or(usize::MAX),
+    };
+    let mut decoder = png::Decoder::new_with_limits(std::io::Cursor::new(bytes), limits);
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let mut reader = decoder
+        .read_info()
+        .map_err(|e| corrupt(format!("PNG decoder: {e}")))?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| corrupt("the PNG's stated size overflows memory".into()))?;
+    let mut data = vec![0u8; size];
+    let info = reader
+        .next_frame(&mut data)
+        .map_err(|e| corrupt(format!("PNG decoder: {e}")))?;
+    data.truncate(info.buffer_size());
+    let channels = info.color_type.samples();
+    let sixteen_bit = info.bit_depth == png::BitDepth::Sixteen;
+    let expected =
+        info.width as usize * info.height as usize * channels * (1 + sixteen_bit as usize);
+    if data.len() != expected {
+        return Err(corrupt(format!(
+            "PNG decoder gave {} bytes for {}x{} with {channels} channel(s), expected {expected}",
+            data.len(),
+            info.width,
+            info.height
+        )));
+    }
+    Ok(Some(DecodedPng {
+        width: info.width,
+        height: info.height,
+        channels,
+        sixteen_bit,
+        data,
+    }))
+}
+
+impl DecodedPng {
+    /// As 8-bit grey: colour by OpenCV's `cvtColor` (as `imdecode` + `cvtColor`
+    /// gave before), alpha dropped; 16 bits refused.
+    fn to_gray(&self, source_name: &str) -> Result<GrayImage, VisionError> {
+        if self.sixteen_bit {
+            return Err(VisionError::SixteenBit {
+                source_name: source_name.to_owned(),
+            });
+        }
+        let grey: Vec<u8>;
+        let pixels = match self.channels {
+            1 => &self.data,
+            2 => {
+                grey = self.data.iter().step_by(2).copied().collect();
+                &grey
+            }
+            3 | 4 => {
+                let rows = i32::try_from(self.height).map_err(|_| {
+                    VisionError::InvalidImage(format!("height {} too large", self.height))
+                })?;
+                let flat = Mat::new_rows_cols_with_data(
+                    rows,
+                    (self.data.len() / self.height as usize) as i32,
+                    &self.data,
+                )
+                .cv("Mat::new_rows_cols_with_data")?;
+                let colour = flat
+                    .reshape(self.channels as i32, rows)
+                    .cv("Mat::reshape")?;
+                let code = if self.channels == 3 {
+                    imgproc::COLOR_RGB2GRAY
+                } else {
+                    imgproc::COLOR_RGBA2GRAY
+                };
+                let mut g = Mat::default();
+                imgproc::cvt_color(&colour, &mut g, code, 0).cv("cvtColor")?;
+                return GrayImage::from_mat(g);
+            }
+            c => {
+                return Err(VisionError::UnsupportedImage {
+                    source_name: source_name.to_owned(),
+                    what: format!("{c} channels"),
+                });
+            }
+        };
+        GrayImage::from_raw(self.width, self.height, pixels)
+    }
+}
+
 /// The size an image file's header states (see [`header_size`]), reading at most
 /// its first 256 KiB; `None` when the header is not PNG or JPEG or not found there.
 pub fn image_file_size(path: &Path) -> Result<Option<(u32, u32)>, VisionError> {
@@ -312,8 +430,8 @@ pub fn decode_gray(bytes: &[u8], source_name: &str) -> Result<GrayImage, VisionE
     if let Some(size) = header_size(bytes) {
         check_stated_size(source_name, size, None)?;
     }
-    if let Err(reason) = png_chunks_complete(bytes) {
-        return Err(corrupt(&reason));
+    if let Some(png) = decode_png(bytes, source_name)? {
+        return png.to_gray(source_name);
     }
     let buf = Vector::<u8>::from_slice(bytes);
     // OpenCV's decoders report failure as an empty Mat, or sometimes throw.
