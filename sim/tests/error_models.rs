@@ -868,8 +868,9 @@ fn study(structure: Structure) {
                         ));
                     }
                     // Honest p95: not far below the truth (the goal is at or above;
-                    // see the README for the cells below), not more than twice it.
-                    if r.predicted_p95 < 0.6 * r.true_p95 || r.predicted_p95 > 2.0 * r.true_p95 {
+                    // see the README for the two cells below, the lowest 0.78x),
+                    // not more than twice it.
+                    if r.predicted_p95 < 0.75 * r.true_p95 || r.predicted_p95 > 2.0 * r.true_p95 {
                         failures.push(format!(
                             "{cell}: predicted p95 {:.4} mm against a true p95 of {:.4} mm",
                             r.predicted_p95 * 1e3,
@@ -921,10 +922,10 @@ fn study(structure: Structure) {
     if !op_pooled.is_empty() {
         // The touch-point view does not rescue it: the touches stand in other
         // configurations than the views, so little of the error cancels.
-        // README: 71%; held within 1.5x of it, and below honest.
+        // README: 75%; held within 1.5x of it, and below honest.
         let op = op_pooled.iter().sum::<f64>() / op_pooled.len() as f64;
         assert!(
-            (0.71 / 1.5..0.9).contains(&op),
+            (0.75 / 1.5..0.9).contains(&op),
             "DH coverage against touches {op}: update the README"
         );
     }
@@ -933,9 +934,9 @@ fn study(structure: Structure) {
         // the split-half check widens the covariance but cannot see the part
         // common to all captures. Pinned down: if this starts to hold, the
         // README's caveat is out of date.
-        // README: 62%; held within 1.5x of it, and below honest.
+        // README: 66%; held within 1.5x of it, and below honest.
         assert!(
-            (0.62 / 1.5..0.9).contains(&pooled),
+            (0.66 / 1.5..0.9).contains(&pooled),
             "DH coverage {pooled}: update the README"
         );
     } else if !(0.90..=0.995).contains(&pooled) {
