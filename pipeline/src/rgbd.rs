@@ -364,18 +364,16 @@ pub fn fit_camera_pair(
             source: other,
         },
     })?;
-    let inlier_points1: Vec<Point3<f64>> = points1
-        .iter()
-        .zip(&fit.inliers)
-        .filter(|(_, k)| **k)
-        .map(|(p, _)| *p)
-        .collect();
-    let inlier_points2: Vec<Point3<f64>> = points2
-        .iter()
-        .zip(&fit.inliers)
-        .filter(|(_, k)| **k)
-        .map(|(p, _)| *p)
-        .collect();
+    let inliers_of = |points: &[Point3<f64>]| -> Vec<Point3<f64>> {
+        points
+            .iter()
+            .zip(&fit.inliers)
+            .filter(|(_, k)| **k)
+            .map(|(p, _)| *p)
+            .collect()
+    };
+    let inlier_points1 = inliers_of(points1);
+    let inlier_points2 = inliers_of(points2);
     let inliers = inlier_points1.len();
     if inliers < need {
         return Err(PipelineError::TooFewRansacInliers { inliers, need });

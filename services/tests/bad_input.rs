@@ -181,6 +181,21 @@ fn oversized_png_header_fails_before_decoding() {
     both_fail(&dir, &["003.png", "claims 32000x32000"], REFUSED_WITHIN_S);
 }
 
+/// `agent handeye` on robot 1 of `dir`, writing `out`: its output and stderr
+/// (printed too).
+fn handeye_robot1(dir: &Path, out: &Path) -> (std::process::Output, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["handeye", "--dataset"])
+        .arg(dir)
+        .args(["--robot", "robot1", "--out"])
+        .arg(out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    eprintln!("exit {:?}: {}", o.status.code(), stderr.trim());
+    (o, stderr)
+}
+
 /// The review's example: every capture of a robot unusable printed "too few
 /// captures: 0, need at least 3" twice (in the message and again as its source).
 /// Each cause is printed once, in the chain "a: b: c".
@@ -191,15 +206,7 @@ fn no_usable_capture_prints_the_cause_once() {
         fake_png(&e.unwrap().path(), 640, 480);
     }
     let out_dir = tempfile::tempdir().unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_agent"))
-        .args(["handeye", "--dataset"])
-        .arg(&dir)
-        .args(["--robot", "robot1", "--out"])
-        .arg(out_dir.path().join("h.json"))
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    eprintln!("exit {:?}: {}", o.status.code(), stderr.trim());
+    let (o, stderr) = handeye_robot1(&dir, &out_dir.path().join("h.json"));
     assert_eq!(o.status.code(), Some(1), "{stderr}");
     let cause = "too few captures: 0, need at least 3";
     assert_eq!(stderr.matches(cause).count(), 1, "{stderr}");
@@ -223,15 +230,7 @@ fn a_damaged_png_is_named_without_decoder_noise() {
     bytes[idat + 40] ^= 0x5A;
     std::fs::write(&png, bytes).unwrap();
     let out_dir = tempfile::tempdir().unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_agent"))
-        .args(["handeye", "--dataset"])
-        .arg(&dir)
-        .args(["--robot", "robot1", "--out"])
-        .arg(out_dir.path().join("h.json"))
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    eprintln!("exit {:?}: {}", o.status.code(), stderr.trim());
+    let (o, stderr) = handeye_robot1(&dir, &out_dir.path().join("h.json"));
     // The other captures calibrate; the damaged one is a rejected capture.
     assert!(o.status.success(), "{stderr}");
     let he: serde_json::Value =
