@@ -611,6 +611,22 @@ impl Engine {
         Some((r, j, g))
     }
 
+    /// Each used capture's whitened `J_cᵀJ_c` and `J_cᵀr_c`: once, for the final
+    /// covariance (their sum) and its leave-one-out spread.
+    fn capture_normals(&self) -> Option<Vec<(DMatrix<f64>, DVector<f64>)>> {
+        let (poses, cameras) = self.current();
+        self.captures
+            .iter()
+            .enumerate()
+            .filter(|(_, cap)| cap.used())
+            .map(|(ci, cap)| {
+                let (rc, jc, _) =
+                    self.capture_block(ci, &cap.inlier, &poses, &cameras, true, true)?;
+                Some((jc.transpose() * &jc, jc.transpose() * rc))
+            })
+            .collect()
+    }
+
     /// The whitened normal equations `JᵀJ`, `Jᵀr` and `rᵀr`, accumulated capture
     /// by capture (a dense product per capture instead of one tall matrix).
     fn normal_equations(&self) -> Option<(DMatrix<f64>, DVector<f64>, f64)> {
@@ -649,17 +665,15 @@ impl Engine {
     /// [`crate::estimate`]. `None` when a capture cannot be left out (the rest
     /// would not determine every unknown), or with fewer than two captures per
     /// reported dimension.
-    fn leave_one_out_spread(&self, a: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+    fn leave_one_out_spread(
+        &self,
+        a: &DMatrix<f64>,
+        normals: &[(DMatrix<f64>, DVector<f64>)],
+    ) -> Option<DMatrix<f64>> {
         let n = self.n_params();
-        let (poses, cameras) = self.current();
-        let mut steps = Vec::new();
-        for (ci, cap) in self.captures.iter().enumerate() {
-            if !cap.used() {
-                continue;
-            }
-            let (rc, jc, _) = self.capture_block(ci, &cap.inlier, &poses, &cameras, true, true)?;
-            let without = a - jc.transpose() * &jc;
-            steps.push(without.cholesky()?.solve(&(jc.transpose() * &rc)));
+        let mut steps = Vec::with_capacity(normals.len());
+        for (jtj, jtr) in normals {
+            steps.push((a - jtj).cholesky()?.solve(jtr));
         }
         // The jackknife's variance: (G - 1) / G times the leave-one-out
         // estimates' scatter about their mean.
@@ -1379,9 +1393,13 @@ pub(crate) fn solve(
             engine.n_params()
         )));
     }
-    let (a, _, _) = engine
-        .normal_equations()
+    let normals = engine
+        .capture_normals()
         .ok_or_else(|| CalibError::Optimisation("a corner went behind its camera".into()))?;
+    let n = engine.n_params();
+    let a = normals
+        .iter()
+        .fold(DMatrix::zeros(n, n), |acc, (jtj, _)| acc + jtj);
     let mut covariance = a.clone().try_inverse().ok_or_else(|| {
         CalibError::Optimisation(
             "normal matrix is singular: the data do not determine every unknown".into(),
@@ -1389,7 +1407,7 @@ pub(crate) fn solve(
     })?;
     covariance = (&covariance + covariance.transpose()) * 0.5;
     let spread = if options.widen_to_spread {
-        engine.leave_one_out_spread(&a)
+        engine.leave_one_out_spread(&a, &normals)
     } else {
         None
     };

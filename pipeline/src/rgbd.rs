@@ -604,7 +604,7 @@ pub fn load_views(
     ds: &Dataset,
     robot: &str,
     options: &RgbdOptions,
-) -> Result<(Vec<RgbdView>, Vec<RejectedCapture>), PipelineError> {
+) -> Result<RobotViews, PipelineError> {
     let data = ds
         .robot(robot)
         .ok_or_else(|| crate::unknown_robot(ds, robot))?;
@@ -633,7 +633,20 @@ pub fn load_views(
             Err(e) => rejected.push(reject(crate::error_chain(&e))),
         }
     }
-    Ok((views, rejected))
+    Ok(RobotViews {
+        views,
+        rejected,
+        camera,
+    })
+}
+
+/// One robot's views ([`load_views`]), the captures that gave none, and the
+/// camera model they were lifted with.
+#[derive(Debug)]
+pub struct RobotViews {
+    pub views: Vec<RgbdView>,
+    pub rejected: Vec<RejectedCapture>,
+    pub camera: CameraModel,
 }
 
 /// The RGB-D method with given hand-eyes (`flange_from_camera` of robot 1 and 2)
@@ -652,19 +665,15 @@ pub fn rgbd_base_to_base_with_hand_eyes(
         return Err(crate::rgbd_not_two_robots(ds));
     }
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
-    let (v1, rej1) = load_views(ds, &ids[0], options)?;
-    let (v2, rej2) = load_views(ds, &ids[1], options)?;
-    let cameras = [
-        RobotSetup::from_dataset(ds, &ids[0])?.camera,
-        RobotSetup::from_dataset(ds, &ids[1])?.camera,
-    ];
-    let mut rejected = rej1;
-    rejected.extend(rej2);
+    let r1 = load_views(ds, &ids[0], options)?;
+    let r2 = load_views(ds, &ids[1], options)?;
+    let mut rejected = r1.rejected;
+    rejected.extend(r2.rejected);
     let detect_ms = start.elapsed().as_secs_f64() * 1e3;
     let mut run = rgbd_from_views(
         [&ids[0], &ids[1]],
-        [&v1, &v2],
-        [&cameras[0], &cameras[1]],
+        [&r1.views, &r2.views],
+        [&r1.camera, &r2.camera],
         rejected,
         flange_from_camera,
         hand_eye_covariance,

@@ -788,6 +788,7 @@ fn study(structure: Structure) {
     let mut op_pooled = Vec::new();
     let mut failures = Vec::new();
     let (mut covered, mut cells) = (0.0, 0.0);
+    let mut below_truth = Vec::new();
     for board in [Board::Checkerboard, Board::Charuco] {
         for n in [15, 30] {
             for m in MAGNITUDES {
@@ -870,6 +871,9 @@ fn study(structure: Structure) {
                     // Honest p95: not far below the truth (the goal is at or above;
                     // see the README for the two cells below, the lowest 0.78x),
                     // not more than twice it.
+                    if r.predicted_p95 < r.true_p95 {
+                        below_truth.push(cell.clone());
+                    }
                     if r.predicted_p95 < 0.75 * r.true_p95 || r.predicted_p95 > 2.0 * r.true_p95 {
                         failures.push(format!(
                             "{cell}: predicted p95 {:.4} mm against a true p95 of {:.4} mm",
@@ -941,6 +945,14 @@ fn study(structure: Structure) {
         );
     } else if !(0.90..=0.995).contains(&pooled) {
         failures.push(format!("pooled coverage {pooled}"));
+    }
+    // README: the predicted p95 at or above the true one in 58 of the 60 cells
+    // of a-d and f, the two below both in d.
+    if below_truth.len() > 2 {
+        failures.push(format!(
+            "predicted p95 below the true one in {} cells: {below_truth:?}",
+            below_truth.len()
+        ));
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }

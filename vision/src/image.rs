@@ -125,12 +125,16 @@ pub const MAX_IMAGE_PIXELS: u64 = 50_000_000;
 /// How many bytes of a file [`image_file_size`] reads to find the header.
 const HEADER_READ_LIMIT: u64 = 256 * 1024;
 
+/// Whether `bytes` start with the PNG signature.
+fn is_png(bytes: &[u8]) -> bool {
+    bytes.starts_with(&[0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A])
+}
+
 /// Width and height as an encoded image's header states them, without decoding:
 /// PNG's IHDR (bytes 16..24) or a JPEG's SOF segment. `None` when the bytes are
 /// neither, or the JPEG's SOF is not within `bytes`.
 pub fn header_size(bytes: &[u8]) -> Option<(u32, u32)> {
-    const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
-    if bytes.len() >= 24 && bytes[..8] == PNG_SIGNATURE && &bytes[12..16] == b"IHDR" {
+    if bytes.len() >= 24 && is_png(bytes) && &bytes[12..16] == b"IHDR" {
         let be =
             |k: usize| u32::from_be_bytes([bytes[k], bytes[k + 1], bytes[k + 2], bytes[k + 3]]);
         return Some((be(16), be(20)));
@@ -181,8 +185,7 @@ pub fn header_size(bytes: &[u8]) -> Option<(u32, u32)> {
 /// A file cut short is refused here, with where it ends, rather than by libpng,
 /// which would also print its own line on stderr. Other formats pass.
 pub fn png_chunks_complete(bytes: &[u8]) -> Result<(), String> {
-    const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
-    if bytes.len() < 8 || bytes[..8] != PNG_SIGNATURE {
+    if !is_png(bytes) {
         return Ok(());
     }
     let mut k = 8usize;
@@ -237,8 +240,7 @@ pub(crate) fn decode_png(
     bytes: &[u8],
     source_name: &str,
 ) -> Result<Option<DecodedPng>, VisionError> {
-    const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A];
-    if bytes.len() < 8 || bytes[..8] != PNG_SIGNATURE {
+    if !is_png(bytes) {
         return Ok(None);
     }
     let corrupt = |reason: String| VisionError::CorruptImage {
