@@ -58,6 +58,9 @@ pub enum FramesError {
     /// The RealSense camera (feature `realsense`).
     #[error("RealSense: {0}")]
     RealSense(String),
+    /// Depth could not be aligned to colour.
+    #[error("aligning depth to colour: {0}")]
+    Align(String),
 }
 
 #[cfg(test)]

@@ -35,6 +35,7 @@
 //! + 1 loan) * max_bytes` of `/dev/shm`; for 1280x720 RGB that is 61 MB.
 //! iceoryx2 keeps its bookkeeping under `/tmp/iceoryx2` and `/dev/shm/iox2_*`.
 
+pub mod align;
 mod error;
 mod header;
 pub mod png;

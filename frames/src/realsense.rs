@@ -2,6 +2,25 @@
 //! source, through realsense-rust (feature `realsense`; needs librealsense2, see
 //! the README).
 //!
+//! A D4xx's depth comes from another sensor than its colour, at another
+//! resolution, with an extrinsic between the two. The depth published is aligned
+//! to colour ([`crate::align`], with the intrinsics and extrinsic librealsense
+//! reports; librealsense's own align block lets a farther surface overwrite a
+//! nearer one at edges): the colour stream's size and intrinsics, an identity
+//! extrinsic, and the colour frame's number, which is how the agent pairs the
+//! two. Colour and depth are
+//! paired only when librealsense's timestamps are within
+//! [`RealSenseOptions::pair_window_ns`]; a colour frame without such a depth frame
+//! is published alone (counted, and logged with the gap), never with another
+//! frame's depth. What the device reports about its depth sensor (intrinsics,
+//! the depth-from-colour extrinsic) is kept in [`RealSense::recorded`].
+//!
+//! A recording's timestamps are from when it was recorded; played back, they are
+//! moved onto the host clock by one offset per pass (the first frame at the
+//! moment it is played), so intervals and colour-depth gaps stay as recorded and
+//! an agent waiting for a frame exposed after its arm stopped gets one. Frame
+//! numbers keep increasing when a looping recording starts again.
+//!
 //! Frames are written into the loaned samples pixel by pixel through
 //! realsense-rust's safe pixel accessor: its raw data pointer is `unsafe`, which
 //! the workspace denies. That costs a few milliseconds per frame, not a copy.
@@ -17,6 +36,7 @@ use realsense_rust::kind::{Rs2Format, Rs2StreamKind, Rs2TimestampDomain};
 use realsense_rust::pipeline::{ActivePipeline, InactivePipeline};
 use realsense_rust::stream_profile::StreamProfile;
 
+use crate::align::{Extrinsic, Intrinsics, align_to_colour};
 use crate::{FrameHeader, FramePublisher, FramesError, StreamKind};
 
 /// What to open.
@@ -24,11 +44,18 @@ use crate::{FrameHeader, FramePublisher, FramesError, StreamKind};
 pub struct RealSenseOptions {
     /// A device's serial number; `None`: the first device.
     pub serial: Option<String>,
-    /// Play a `.bag` recording (looping) instead of a device.
+    /// Play a `.bag` recording instead of a device.
     pub bag: Option<PathBuf>,
+    /// Start a recording again when it ends (otherwise its end is
+    /// [`Played::End`]).
+    pub loop_playback: bool,
     pub colour: (u32, u32),
     pub depth: (u32, u32),
     pub fps: u32,
+    /// The largest gap (ns) between a colour frame's and a depth frame's
+    /// timestamps for them to be one capture. Default: half a frame period at
+    /// 30 fps, so a frame is paired with its own exposure or none.
+    pub pair_window_ns: u64,
 }
 
 impl Default for RealSenseOptions {
@@ -36,9 +63,11 @@ impl Default for RealSenseOptions {
         RealSenseOptions {
             serial: None,
             bag: None,
+            loop_playback: true,
             colour: (1280, 720),
             depth: (848, 480),
             fps: 30,
+            pair_window_ns: 16_666_667,
         }
     }
 }
@@ -47,18 +76,63 @@ fn rs(what: &str, e: impl std::fmt::Display) -> FramesError {
     FramesError::RealSense(format!("{what}: {e}"))
 }
 
+/// What the device (or the recording) reports about its streams, before
+/// alignment.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Recorded {
+    /// The colour stream's header: size, intrinsics.
+    pub colour: FrameHeader,
+    /// The depth sensor's own header: size, intrinsics and `depth_from_colour`.
+    pub depth: FrameHeader,
+}
+
+/// What [`RealSense::publish_next`] did, in order.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Played {
+    /// Colour frame `number` was published.
+    Colour { number: u64 },
+    /// Its depth frame, aligned to colour, was published.
+    Depth { number: u64 },
+    /// Colour frame `number` goes without depth: no depth frame came within
+    /// the pairing window before the next colour frame; the nearest one seen
+    /// was this far away (ns), if any.
+    Unpaired {
+        number: u64,
+        nearest_depth_ns: Option<u64>,
+    },
+    /// A recording played without looping has ended.
+    End,
+}
+
 /// A running RealSense pipeline with colour (RGB8) and depth (Z16) streams.
 pub struct RealSense {
     pipeline: ActivePipeline,
+    recorded: Recorded,
+    colour_intrinsics: Intrinsics,
+    depth_intrinsics: Intrinsics,
+    colour_from_depth: Extrinsic,
+    /// One depth frame as librealsense delivers it, and aligned.
+    raw_depth: Vec<u16>,
+    aligned: Vec<u16>,
+    waiting: Option<Waiting>,
+    last_depth_raw: u64,
+    /// The published headers: colour, and depth aligned to it.
     colour: FrameHeader,
     depth: FrameHeader,
+    playback: bool,
+    pair_window_ns: u64,
+    /// Per pass of a recording: host time minus recorded time (ns).
+    clock_offset: Option<i128>,
+    last_raw_number: u64,
+    number_offset: u64,
+    unpaired: u64,
 }
 
 impl std::fmt::Debug for RealSense {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("RealSense")
-            .field("colour", &self.colour)
-            .field("depth", &self.depth)
+            .field("recorded", &self.recorded)
+            .field("unpaired", &self.unpaired)
             .finish()
     }
 }
@@ -88,8 +162,10 @@ impl RealSense {
         let context = Context::new().map_err(|e| rs("no librealsense context", e))?;
         let mut config = Config::new();
         if let Some(bag) = &options.bag {
+            // librealsense accepts any path here and fails later without naming it.
+            std::fs::File::open(bag).map_err(|e| rs(&format!("{}", bag.display()), e))?;
             config
-                .enable_device_from_file(bag, true)
+                .enable_device_from_file(bag, options.loop_playback)
                 .map_err(|e| rs(&format!("{}", bag.display()), e))?;
         } else if let Some(serial) = &options.serial {
             let s = CString::new(serial.as_str()).map_err(|e| rs("serial", e))?;
@@ -119,10 +195,14 @@ impl RealSense {
                 )
                 .map_err(|e| rs("depth stream", e))?;
         }
+        let what = options
+            .bag
+            .as_ref()
+            .map_or_else(|| "the device".to_owned(), |b| format!("{}", b.display()));
         let pipeline = InactivePipeline::try_from(&context)
             .map_err(|e| rs("pipeline", e))?
             .start(Some(config))
-            .map_err(|e| rs("cannot start the pipeline", e))?;
+            .map_err(|e| rs(&format!("cannot start the pipeline on {what}"), e))?;
         let streams = pipeline.profile().streams();
         let find = |kind: Rs2StreamKind| {
             streams
@@ -133,7 +213,7 @@ impl RealSense {
         let (colour_profile, depth_profile) =
             (find(Rs2StreamKind::Color)?, find(Rs2StreamKind::Depth)?);
         let colour = header(StreamKind::Rgb8, colour_profile, "colour intrinsics")?;
-        let mut depth = header(StreamKind::Z16, depth_profile, "depth intrinsics")?;
+        let depth = header(StreamKind::Z16, depth_profile, "depth intrinsics")?;
         // p_in_depth = R * p_in_colour + t; librealsense's rotation is column-major.
         let e = colour_profile
             .extrinsics(depth_profile)
@@ -145,73 +225,232 @@ impl RealSense {
                 rotation[3 * i + j] = f64::from(c[3 * j + i]);
             }
         }
-        let with_extrinsic = |h: FrameHeader| FrameHeader {
-            depth_from_colour_rotation: rotation,
-            depth_from_colour_translation_m: t.map(f64::from),
-            ..h
+        let recorded = Recorded {
+            colour,
+            depth: FrameHeader {
+                depth_from_colour_rotation: rotation,
+                depth_from_colour_translation_m: t.map(f64::from),
+                ..depth
+            },
         };
-        depth = with_extrinsic(depth);
-        let colour = with_extrinsic(colour);
-        depth.depth_unit_m = 0.0; // set from the first depth frame
+        // Aligned depth: the colour stream's geometry, an identity extrinsic.
+        let aligned = FrameHeader {
+            depth_unit_m: 0.0, // set from each depth frame
+            ..FrameHeader::new(StreamKind::Z16, colour.width, colour.height).with_intrinsics(
+                colour.fx,
+                colour.fy,
+                colour.cx,
+                colour.cy,
+                colour.dist,
+            )
+        };
+        let colour_intrinsics = Intrinsics::of(&recorded.colour, "colour")?;
+        let depth_intrinsics = Intrinsics::of(&recorded.depth, "depth")?;
+        let colour_from_depth = Extrinsic::colour_from_depth(&recorded.depth);
         Ok(RealSense {
             pipeline,
+            recorded,
+            colour_intrinsics,
+            depth_intrinsics,
+            colour_from_depth,
+            raw_depth: Vec::new(),
+            aligned: Vec::new(),
+            waiting: None,
+            last_depth_raw: 0,
             colour,
-            depth,
+            depth: aligned,
+            playback: options.bag.is_some(),
+            pair_window_ns: options.pair_window_ns,
+            clock_offset: None,
+            last_raw_number: 0,
+            number_offset: 0,
+            unpaired: 0,
         })
     }
 
-    /// The sample sizes the two publishers need: (colour, depth).
+    /// The streams as the device reports them, before alignment.
+    pub fn recorded(&self) -> &Recorded {
+        &self.recorded
+    }
+
+    /// Colour frames published without depth: none within the pairing window.
+    pub fn unpaired(&self) -> u64 {
+        self.unpaired
+    }
+
+    /// The sample sizes the two publishers need: (colour, aligned depth).
     pub fn max_bytes(&self) -> (usize, usize) {
         (self.colour.payload_len(), self.depth.payload_len())
     }
 
-    /// Waits for the next frameset and publishes its colour and depth frames;
-    /// returns which of the two were present.
+    /// A frame's time on the host clock (see the module docs), ns.
+    fn host_time(&mut self, f: &impl FrameEx) -> u64 {
+        if !self.playback {
+            return time_ns(f);
+        }
+        let recorded = (f.timestamp() * 1e6) as i128;
+        let offset = *self
+            .clock_offset
+            .get_or_insert_with(|| i128::from(crate::now_ns()) - recorded);
+        u64::try_from(recorded + offset).unwrap_or(0)
+    }
+
+    /// Waits for the next frameset and publishes what is new in it: a new
+    /// colour frame at once; a depth frame, aligned to colour, once it is
+    /// within the pairing window of the colour frame still waiting for one
+    /// (librealsense's syncer may deliver a colour frame with the previous
+    /// depth frame first, and its own depth frame in the next frameset). A
+    /// colour frame still waiting when the next one arrives goes without depth
+    /// ([`Played::Unpaired`]).
     pub fn publish_next(
         &mut self,
         colour: &mut FramePublisher,
         depth: &mut FramePublisher,
         timeout: Duration,
-    ) -> Result<(bool, bool), FramesError> {
-        let frames = self
-            .pipeline
-            .wait(Some(timeout))
-            .map_err(|e| rs("waiting for frames", e))?;
-        let mut got = (false, false);
-        if let Some(f) = frames.frames_of_type::<ColorFrame>().into_iter().next() {
-            let h = self.colour.at(f.frame_number(), time_ns(&f));
-            check_size(&h, f.width(), f.height())?;
-            colour.publish_with(&h, |buf| {
-                let w = h.width as usize;
-                for (k, p) in f.iter().enumerate().take(w * h.height as usize) {
-                    let o = k * 3;
-                    match p {
-                        PixelKind::Bgr8 { b, g, r } | PixelKind::Rgb8 { r, g, b } => {
-                            buf[o..o + 3].copy_from_slice(&[*r, *g, *b]);
-                        }
-                        _ => {}
-                    }
+    ) -> Result<Vec<Played>, FramesError> {
+        let mut out = Vec::new();
+        let frames = match self.pipeline.wait(Some(timeout)) {
+            Ok(f) => f,
+            // A recording played once ends with no more frames.
+            Err(_) if self.playback && self.last_raw_number > 0 => {
+                if let Some(w) = self.waiting.take() {
+                    self.unpaired += 1;
+                    out.push(w.unpaired());
                 }
-            })?;
-            got.0 = true;
+                out.push(Played::End);
+                return Ok(out);
+            }
+            Err(e) => return Err(rs("waiting for frames", e)),
+        };
+        // The frameset's depth frame, unless it already went out.
+        let d = frames
+            .frames_of_type::<DepthFrame>()
+            .into_iter()
+            .next()
+            .filter(|d| d.frame_number() != self.last_depth_raw);
+        let c = frames
+            .frames_of_type::<ColorFrame>()
+            .into_iter()
+            .next()
+            .filter(|c| c.frame_number() != self.last_raw_number);
+        // A depth frame for the colour frame waiting for one.
+        let mut depth_used = false;
+        if let (Some(d), Some(w)) = (&d, self.waiting) {
+            let t = self.host_time(d);
+            let gap = t.abs_diff(w.time_ns);
+            if gap <= self.pair_window_ns {
+                self.publish_depth(depth, d, w.number, t)?;
+                out.push(Played::Depth { number: w.number });
+                self.waiting = None;
+                depth_used = true;
+            } else if let Some(w) = self.waiting.as_mut() {
+                w.nearest_gap_ns = Some(w.nearest_gap_ns.map_or(gap, |g| g.min(gap)));
+            }
         }
-        if let Some(f) = frames.frames_of_type::<DepthFrame>().into_iter().next() {
-            let unit = f.depth_units().map_err(|e| rs("depth unit", e))?;
-            let h = FrameHeader {
-                depth_unit_m: f64::from(unit),
-                ..self.depth.at(f.frame_number(), time_ns(&f))
-            };
-            check_size(&h, f.width(), f.height())?;
-            depth.publish_with(&h, |buf| {
-                for (k, p) in f.iter().enumerate().take(buf.len() / 2) {
-                    if let PixelKind::Z16 { depth } = p {
-                        buf[2 * k..2 * k + 2].copy_from_slice(&depth.to_le_bytes());
+        let Some(c) = c else {
+            return Ok(out);
+        };
+        if let Some(w) = self.waiting.take() {
+            self.unpaired += 1;
+            out.push(w.unpaired());
+        }
+        let raw = c.frame_number();
+        if raw < self.last_raw_number {
+            // The recording started again: numbers go on, times start afresh.
+            self.number_offset += self.last_raw_number;
+            self.clock_offset = None;
+        }
+        self.last_raw_number = raw;
+        let number = raw + self.number_offset;
+        let colour_time = self.host_time(&c);
+        let h = self.colour.at(number, colour_time);
+        check_size(&h, c.width(), c.height())?;
+        colour.publish_with(&h, |buf| {
+            let w = h.width as usize;
+            for (k, p) in c.iter().enumerate().take(w * h.height as usize) {
+                let o = k * 3;
+                match p {
+                    PixelKind::Bgr8 { b, g, r } | PixelKind::Rgb8 { r, g, b } => {
+                        buf[o..o + 3].copy_from_slice(&[*r, *g, *b]);
                     }
+                    _ => {}
                 }
-            })?;
-            got.1 = true;
+            }
+        })?;
+        out.push(Played::Colour { number });
+        let mut waiting = Waiting {
+            number,
+            time_ns: colour_time,
+            nearest_gap_ns: None,
+        };
+        if let Some(d) = d.as_ref().filter(|_| !depth_used) {
+            let t = self.host_time(d);
+            let gap = t.abs_diff(colour_time);
+            if gap <= self.pair_window_ns {
+                self.publish_depth(depth, d, number, t)?;
+                out.push(Played::Depth { number });
+                return Ok(out);
+            }
+            waiting.nearest_gap_ns = Some(gap);
         }
-        Ok(got)
+        self.waiting = Some(waiting);
+        Ok(out)
+    }
+
+    /// Aligns `d` to colour and publishes it as colour frame `number`'s depth.
+    fn publish_depth(
+        &mut self,
+        depth: &mut FramePublisher,
+        d: &DepthFrame,
+        number: u64,
+        time_ns: u64,
+    ) -> Result<(), FramesError> {
+        let unit = f64::from(d.depth_units().map_err(|e| rs("depth unit", e))?);
+        check_size(&self.recorded.depth, d.width(), d.height())?;
+        self.last_depth_raw = d.frame_number();
+        self.raw_depth.clear();
+        self.raw_depth.extend(d.iter().map(|p| match p {
+            PixelKind::Z16 { depth } => *depth,
+            _ => 0,
+        }));
+        let h = FrameHeader {
+            depth_unit_m: unit,
+            ..self.depth.at(number, time_ns)
+        };
+        self.aligned.resize(h.width as usize * h.height as usize, 0);
+        align_to_colour(
+            &self.raw_depth,
+            &self.depth_intrinsics,
+            &self.colour_intrinsics,
+            &self.colour_from_depth,
+            unit,
+            &mut self.aligned,
+        )?;
+        let aligned = &self.aligned;
+        depth.publish_with(&h, |buf| {
+            for (dst, z) in buf.chunks_exact_mut(2).zip(aligned) {
+                dst.copy_from_slice(&z.to_le_bytes());
+            }
+        })?;
+        Ok(())
+    }
+}
+
+/// A published colour frame still without its depth frame.
+#[derive(Debug, Clone, Copy)]
+struct Waiting {
+    number: u64,
+    time_ns: u64,
+    /// The nearest depth frame seen so far, outside the window.
+    nearest_gap_ns: Option<u64>,
+}
+
+impl Waiting {
+    fn unpaired(&self) -> Played {
+        Played::Unpaired {
+            number: self.number,
+            nearest_depth_ns: self.nearest_gap_ns,
+        }
     }
 }
 

@@ -19,6 +19,8 @@
 //!   supersampling, thin-lens defocus, illumination, vignetting; [`sensor`] turns
 //!   irradiance into 8-bit pixels (exposure, shot and read noise) and true depth into a
 //!   RealSense-like 16-bit depth image.
+//! - [`d435`]: a RealSense D435's two sensors (colour and depth at their own
+//!   resolutions, the extrinsic between them) for recordings librealsense plays.
 //! - [`scene`] (the JSON scene file) and [`generate`] (viewpoint planning and the
 //!   `b2b-dataset/1` writer behind `sim generate`).
 //!
@@ -51,6 +53,7 @@
 //! Everything is deterministic for a seed: the random generator is ChaCha8 seeded
 //! explicitly, and rendering is single-threaded.
 
+pub mod d435;
 pub mod generate;
 pub mod image_io;
 pub mod markers;

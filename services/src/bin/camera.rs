@@ -45,7 +45,7 @@ struct Cli {
     /// stream rate asked of the device.
     #[arg(long, default_value_t = 30.0)]
     fps: f64,
-    /// Replay the captures once instead of looping.
+    /// Play the replay or the recording once instead of looping.
     #[arg(long)]
     once: bool,
     /// Stop after this many frames per stream.
@@ -257,14 +257,19 @@ fn replay(cli: &Cli, dir: &Path) -> anyhow::Result<serde_json::Value> {
 
 #[cfg(feature = "realsense")]
 fn realsense(cli: &Cli) -> anyhow::Result<serde_json::Value> {
-    use b2b_frames::realsense::{RealSense, RealSenseOptions};
+    use b2b_frames::realsense::{Played, RealSense, RealSenseOptions};
+    let fps = cli.fps.round().max(1.0) as u32;
     let options = RealSenseOptions {
         serial: cli.serial.clone(),
         bag: cli.bag.clone(),
-        fps: cli.fps.round() as u32,
+        loop_playback: !cli.once,
+        fps,
+        // Half a frame period: a colour frame pairs with its own exposure or none.
+        pair_window_ns: 500_000_000 / u64::from(fps),
         ..RealSenseOptions::default()
     };
     let mut camera = RealSense::open(&options)?;
+    let recorded = *camera.recorded();
     let (colour_bytes, depth_bytes) = camera.max_bytes();
     let mut colour = Out::new(cli, Stream::Colour, colour_bytes)?;
     let mut depth = Out::new(cli, Stream::Depth, depth_bytes)?;
@@ -272,23 +277,54 @@ fn realsense(cli: &Cli) -> anyhow::Result<serde_json::Value> {
     let start = Instant::now();
     let mut n = 0u64;
     // Waiting for the device dominates a call: no per-publish timing here.
-    while !stop.load(Ordering::SeqCst) && !cli.frames.is_some_and(|max| n >= max) {
-        let got = camera.publish_next(
+    'frames: while !stop.load(Ordering::SeqCst) && cli.frames.is_none_or(|max| n < max) {
+        for event in camera.publish_next(
             &mut colour.publisher,
             &mut depth.publisher,
             Duration::from_secs(5),
-        )?;
-        if got.0 || got.1 {
-            n += 1;
+        )? {
+            match event {
+                Played::End => break 'frames,
+                Played::Colour { .. } => n += 1,
+                Played::Depth { .. } => {}
+                Played::Unpaired {
+                    number,
+                    nearest_depth_ns,
+                } => match nearest_depth_ns {
+                    Some(gap) => tracing::warn!(
+                        "colour frame {number}: the nearest depth frame was exposed {:.1} ms away (window {:.1} ms); published without depth",
+                        gap as f64 / 1e6,
+                        options.pair_window_ns as f64 / 1e6
+                    ),
+                    None => tracing::warn!(
+                        "colour frame {number}: no depth frame came with it; published without depth"
+                    ),
+                },
+            }
         }
     }
+    let intrinsics = |h: &FrameHeader| {
+        serde_json::json!({
+            "width": h.width, "height": h.height,
+            "fx": h.fx, "fy": h.fy, "cx": h.cx, "cy": h.cy, "dist": h.dist,
+        })
+    };
     Ok(serde_json::json!({
         "robot": cli.robot,
         "source": "realsense",
         "frames": n,
+        "without_depth": camera.unpaired(),
         "seconds": start.elapsed().as_secs_f64(),
         "colour": Out::summary(Some(&colour)),
         "depth": Out::summary(Some(&depth)),
+        "recorded": {
+            "colour": intrinsics(&recorded.colour),
+            "depth": intrinsics(&recorded.depth),
+            "depth_from_colour": {
+                "rotation": recorded.depth.depth_from_colour_rotation,
+                "translation_m": recorded.depth.depth_from_colour_translation_m,
+            },
+        },
     }))
 }
 

@@ -1,0 +1,401 @@
+//! librealsense's own code path, without a camera: the simulator renders frames
+//! as a D435 delivers them (colour 1280x720 and depth 848x480 from two sensors
+//! with an extrinsic between them), librealsense's recorder writes them into a
+//! `.bag` (`scripts/realsense-bag.py`), and `camera --realsense --bag` plays it
+//! through librealsense into iceoryx2, depth aligned to colour by librealsense's
+//! align block.
+//!
+//! Needs the `realsense` feature and librealsense (`scripts/setup-realsense`):
+//! `eval "$(scripts/setup-realsense)" && cargo test --workspace --features
+//! b2b-services/realsense --test realsense_bag`. The gate runs it.
+#![cfg(feature = "realsense")]
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use b2b_frames::{FrameHeader, FrameSubscriber, Stream, StreamKind, service_name_in};
+use b2b_sim::d435::{D435, D435Frame, Timing};
+use b2b_sim::render::{RenderSettings, SceneGeometry};
+use b2b_sim::texture::{Checkerboard, NoiseTexture, Texture, Uniform};
+use nalgebra::{Isometry3, Point3, Vector3};
+
+type Iso3 = Isometry3<f64>;
+
+const FRAMES: usize = 8;
+
+/// A board on a table with a box standing on it: depth edges of 15 cm.
+fn scene() -> SceneGeometry {
+    let mut geo = SceneGeometry::default();
+    geo.add_quad(
+        Iso3::translation(0.0, 0.0, -0.001),
+        [-1.0, -1.0],
+        [1.0, 1.0],
+        Arc::new(Uniform(0.3)),
+    );
+    geo.add_checkerboard(
+        Iso3::translation(-0.2, -0.12, 0.0),
+        Checkerboard::new([9, 6], 0.04, 0.02),
+    );
+    let textures: [Arc<dyn Texture>; 6] = std::array::from_fn(|k| {
+        Arc::new(NoiseTexture {
+            seed: 7 + k as u64,
+            scale_m: 0.04,
+            octaves: 4,
+            mean: 0.5,
+            contrast: 0.35,
+        }) as Arc<dyn Texture>
+    });
+    geo.add_box(
+        Iso3::translation(0.05, 0.02, 0.075),
+        [0.1, 0.12, 0.15],
+        textures,
+    );
+    geo
+}
+
+/// Colour camera poses around the scene, 0.6-0.7 m away.
+fn poses() -> Vec<Iso3> {
+    (0..FRAMES)
+        .map(|k| {
+            let a = k as f64 / FRAMES as f64 * std::f64::consts::TAU;
+            let eye = Point3::new(0.15 * a.cos(), 0.15 * a.sin(), 0.6 + 0.01 * k as f64);
+            b2b_calib::pose::look_at(&eye, &Point3::new(0.0, 0.0, 0.0), &Vector3::y(), 0.0)
+                .inverse()
+        })
+        .collect()
+}
+
+fn record(dir: &Path, camera: &D435, frames: &[D435Frame], timing: &Timing) -> std::path::PathBuf {
+    let raw = dir.join("frames");
+    b2b_sim::d435::write_recording(&raw, camera, frames, timing).unwrap();
+    let bag = dir.join("sim.bag");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/realsense-bag.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(&raw)
+        .arg(&bag)
+        .output()
+        .expect("python3");
+    assert!(
+        out.status.success(),
+        "realsense-bag.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    bag
+}
+
+fn close(a: f64, b: f64) -> bool {
+    // librealsense keeps intrinsics and extrinsics as f32.
+    (a - b).abs() <= 1e-6 * b.abs().max(1.0)
+}
+
+/// What the camera published from a recording, and what it said.
+struct Playback {
+    colour: Vec<FrameHeader>,
+    depth: Vec<(FrameHeader, Vec<u16>)>,
+    summary: serde_json::Value,
+    stderr: String,
+}
+
+/// Plays `bag` once through `camera --realsense` and collects every frame.
+fn play(bag: &Path) -> Playback {
+    b2b_frames::quiet_iceoryx2_logs();
+    let prefix = format!(
+        "b2b-test/{}/{}/rs",
+        std::process::id(),
+        b2b_frames::now_ns()
+    );
+    let mut subs = [Stream::Colour, Stream::Depth]
+        .map(|s| FrameSubscriber::new(&service_name_in(&prefix, "rs1", s)).unwrap());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_camera"))
+        .args([
+            "--robot",
+            "rs1",
+            "--prefix",
+            &prefix,
+            "--realsense",
+            "--once",
+            "--bag",
+        ])
+        .arg(bag)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn camera");
+    let mut colour = Vec::new();
+    let mut depth_bytes: Vec<(FrameHeader, Vec<u8>)> = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let mut idle = true;
+        if let Some(f) = subs[0].next().unwrap() {
+            colour.push(*f.header());
+            idle = false;
+        }
+        if let Some(f) = subs[1].next().unwrap() {
+            depth_bytes.push((*f.header(), f.data().to_vec()));
+            idle = false;
+        }
+        if idle {
+            if child.try_wait().unwrap().is_some() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        assert!(Instant::now() < deadline, "the camera did not finish");
+    }
+    for sub in &subs {
+        let st = sub.stats();
+        assert_eq!(st.dropped, 0, "{st:?}: this test read too slowly");
+    }
+    let depth = depth_bytes
+        .into_iter()
+        .map(|(h, b)| {
+            let d = b
+                .chunks_exact(2)
+                .map(|b| u16::from_le_bytes([b[0], b[1]]))
+                .collect();
+            (h, d)
+        })
+        .collect();
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "camera failed: {stderr}");
+    let summary = serde_json::from_slice(&out.stdout).expect("summary JSON");
+    Playback {
+        colour,
+        depth,
+        summary,
+        stderr,
+    }
+}
+
+/// Every valid aligned pixel's depth is one the true surface takes at most
+/// 1 px away (between the least and the greatest true depth of its 3x3
+/// neighbourhood, give or take the depth quantisation), edges included.
+fn assert_aligned(frame: u64, d: &[u16], truth: &[f32]) {
+    let (w, ht) = (1280usize, 720usize);
+    let (mut valid, mut off, mut edge_px, mut edge_ok) = (0, 0, 0, 0);
+    for v in 1..ht - 1 {
+        for u in 1..w - 1 {
+            let z = f64::from(d[v * w + u]) * 0.001;
+            if z == 0.0 {
+                continue;
+            }
+            valid += 1;
+            let t = |du: isize, dv: isize| {
+                f64::from(truth[(v as isize + dv) as usize * w + (u as isize + du) as usize])
+            };
+            let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+            for dv in -1..=1 {
+                for du in -1..=1 {
+                    let x = t(du, dv);
+                    if x > 0.0 {
+                        lo = lo.min(x);
+                        hi = hi.max(x);
+                    }
+                }
+            }
+            let tol = 0.002 + 0.005 * z;
+            let within_1px = z >= lo - tol && z <= hi + tol;
+            // A true depth edge here: neighbours 5 cm apart.
+            if (t(1, 0) - t(-1, 0)).abs() > 0.05 || (t(0, 1) - t(0, -1)).abs() > 0.05 {
+                edge_px += 1;
+                edge_ok += usize::from(within_1px);
+            }
+            off += usize::from(!within_1px);
+        }
+    }
+    let filled = valid as f64 / (w * ht) as f64;
+    eprintln!(
+        "frame {frame}: {:.1}% filled, {off} pixels more than 1 px from their geometry, edge pixels {edge_ok}/{edge_px}",
+        100.0 * filled
+    );
+    assert!(
+        filled > 0.95,
+        "frame {frame}: only {filled} of the image has depth"
+    );
+    assert!(edge_px > 500, "frame {frame}: {edge_px} edge pixels");
+    assert!(
+        off as f64 <= 1e-4 * valid as f64,
+        "frame {frame}: {off} of {valid} aligned pixels are more than 1 px from their geometry"
+    );
+    assert!(
+        edge_ok as f64 >= 0.995 * edge_px as f64,
+        "frame {frame}: {edge_ok} of {edge_px} edge pixels within 1 px"
+    );
+}
+
+fn assert_in_order(p: &Playback) {
+    for w in p.colour.windows(2) {
+        assert!(w[1].frame_number > w[0].frame_number);
+        assert!(w[1].timestamp_ns > w[0].timestamp_ns);
+    }
+    for w in p.depth.windows(2) {
+        assert!(w[1].0.frame_number > w[0].0.frame_number);
+        assert!(w[1].0.timestamp_ns >= w[0].0.timestamp_ns);
+    }
+}
+
+#[test]
+fn a_recorded_d435_plays_through_librealsense_with_its_intrinsics_and_aligned_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let camera = D435::factory();
+    let truth =
+        b2b_sim::d435::render(&camera, &scene(), &poses(), &RenderSettings::ideal()).unwrap();
+    // Every third frame of a 30 fps camera kept (100 ms apart), so a loaded
+    // machine plays it in real time without losing frames; depth exposed
+    // 0.4 ms after colour, within the pairing window.
+    let bag = record(
+        dir.path(),
+        &camera,
+        &truth,
+        &Timing::regular(FRAMES, 1000.0, 100.0, 0.4),
+    );
+    let p = play(&bag);
+
+    // What librealsense read from the recording is what was recorded.
+    let rec = &p.summary["recorded"];
+    for (key, model) in [("colour", &camera.colour), ("depth", &camera.depth)] {
+        let r = &rec[key];
+        assert_eq!(r["width"], model.width, "{key}");
+        assert_eq!(r["height"], model.height, "{key}");
+        for (name, want) in [
+            ("fx", model.fx),
+            ("fy", model.fy),
+            ("cx", model.cx),
+            ("cy", model.cy),
+        ] {
+            let got = r[name].as_f64().unwrap();
+            assert!(close(got, want), "{key} {name}: {got} recorded as {want}");
+        }
+    }
+    let e = &rec["depth_from_colour"];
+    let r = camera.depth_from_colour.rotation.to_rotation_matrix();
+    let t = camera.depth_from_colour.translation.vector;
+    for i in 0..9 {
+        let got = e["rotation"][i].as_f64().unwrap();
+        assert!(close(got, r[(i / 3, i % 3)]), "rotation[{i}] {got}");
+    }
+    for i in 0..3 {
+        let got = e["translation_m"][i].as_f64().unwrap();
+        assert!((got - t[i]).abs() < 1e-7, "translation[{i}] {got}");
+    }
+
+    // Every frame arrived, in order, with the colour stream's intrinsics; depth
+    // is aligned to colour and carries its colour frame's number.
+    let numbers: Vec<u64> = p.colour.iter().map(|h| h.frame_number).collect();
+    assert_eq!(
+        numbers,
+        (1..=FRAMES as u64).collect::<Vec<_>>(),
+        "{}",
+        p.stderr
+    );
+    let numbers: Vec<u64> = p.depth.iter().map(|(h, _)| h.frame_number).collect();
+    assert_eq!(
+        numbers,
+        (1..=FRAMES as u64).collect::<Vec<_>>(),
+        "{}",
+        p.stderr
+    );
+    assert_eq!(p.summary["without_depth"], 0);
+    assert_in_order(&p);
+    for h in &p.colour {
+        assert_eq!(h.stream_kind().unwrap(), StreamKind::Rgb8);
+        assert_eq!((h.width, h.height), (1280, 720));
+        assert!(close(h.fx, camera.colour.fx) && close(h.cy, camera.colour.cy));
+    }
+    // Timestamps are on the host clock (the recorded ones moved by one offset).
+    let now = b2b_frames::now_ns();
+    let first = p.colour[0].timestamp_ns;
+    assert!(first > now - 120_000_000_000 && first <= now);
+    for (h, d) in &p.depth {
+        assert_eq!(h.stream_kind().unwrap(), StreamKind::Z16);
+        assert_eq!((h.width, h.height), (1280, 720));
+        assert!(close(h.fx, camera.colour.fx) && close(h.cx, camera.colour.cx));
+        assert_eq!(h.depth_from_colour_translation_m, [0.0; 3]);
+        assert!(close(h.depth_unit_m, 0.001));
+        let c = p
+            .colour
+            .iter()
+            .find(|c| c.frame_number == h.frame_number)
+            .unwrap();
+        let gap = h.timestamp_ns.abs_diff(c.timestamp_ns);
+        assert!((300_000..500_000).contains(&gap), "paired {gap} ns apart");
+        assert_aligned(
+            h.frame_number,
+            d,
+            &truth[h.frame_number as usize - 1].colour_depth_m,
+        );
+    }
+}
+
+#[test]
+fn depth_on_its_own_clock_is_paired_by_time_or_not_at_all() {
+    let dir = tempfile::tempdir().unwrap();
+    let camera = D435::factory();
+    let truth =
+        b2b_sim::d435::render(&camera, &scene(), &poses()[..6], &RenderSettings::ideal()).unwrap();
+    // Depth at twice the colour rate in capture 1 (a second depth frame 50 ms
+    // later), dropped in capture 2, 25 ms late in capture 3 (beyond the
+    // 16.7 ms window), 3 ms early in capture 4.
+    let mut timing = Timing::regular(6, 1000.0, 100.0, 0.4);
+    timing.depth_ms[0].push(timing.colour_ms[0] + 50.0);
+    timing.depth_ms[1].clear();
+    timing.depth_ms[2] = vec![timing.colour_ms[2] + 25.0];
+    timing.depth_ms[3] = vec![timing.colour_ms[3] - 3.0];
+    let bag = record(dir.path(), &camera, &truth, &timing);
+    let p = play(&bag);
+    assert_in_order(&p);
+    let numbers: Vec<u64> = p.colour.iter().map(|h| h.frame_number).collect();
+    assert_eq!(numbers, (1..=6).collect::<Vec<_>>(), "{}", p.stderr);
+    let paired: Vec<u64> = p.depth.iter().map(|(h, _)| h.frame_number).collect();
+    assert_eq!(paired, vec![1, 4, 5, 6], "{}", p.stderr);
+    assert_eq!(p.summary["without_depth"], 2);
+    // Capture 2's nearest depth frame is capture 1's second one.
+    assert!(
+        p.stderr
+            .contains("colour frame 2: the nearest depth frame was exposed 50.0 ms away"),
+        "{}",
+        p.stderr
+    );
+    assert!(
+        p.stderr
+            .contains("colour frame 3: the nearest depth frame was exposed 25.0 ms away"),
+        "{}",
+        p.stderr
+    );
+    // Each depth frame is its own capture's: aligned onto that capture's
+    // geometry (another capture's depth would not be), within the window.
+    for (h, d) in &p.depth {
+        let c = p
+            .colour
+            .iter()
+            .find(|c| c.frame_number == h.frame_number)
+            .unwrap();
+        assert!(h.timestamp_ns.abs_diff(c.timestamp_ns) < 16_700_000);
+        assert_aligned(
+            h.frame_number,
+            d,
+            &truth[h.frame_number as usize - 1].colour_depth_m,
+        );
+    }
+}
+
+#[test]
+fn a_missing_recording_is_named() {
+    let out = Command::new(env!("CARGO_BIN_EXE_camera"))
+        .args([
+            "--robot",
+            "rs1",
+            "--realsense",
+            "--bag",
+            "/nonexistent/cart.bag",
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/nonexistent/cart.bag"), "{err}");
+}
