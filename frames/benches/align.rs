@@ -11,29 +11,23 @@
 
 use std::hint::black_box;
 
-use b2b_frames::align::{Extrinsic, Intrinsics, align_to_colour};
+use b2b_frames::align::{Extrinsic, align_to_colour};
+use b2b_frames::{FrameHeader, StreamKind};
 use criterion::{Criterion, criterion_group, criterion_main};
 use opencv::core::{Mat, Size};
 use opencv::prelude::*;
 
-const COLOUR: Intrinsics = Intrinsics {
-    width: 1280,
-    height: 720,
-    fx: 909.7,
-    fy: 909.9,
-    cx: 643.2,
-    cy: 357.8,
-    dist: [0.0; 5],
-};
-const DEPTH: Intrinsics = Intrinsics {
-    width: 848,
-    height: 480,
-    fx: 421.4,
-    fy: 421.4,
-    cx: 422.1,
-    cy: 241.6,
-    dist: [0.0; 5],
-};
+/// A D435's factory streams.
+fn colour() -> FrameHeader {
+    FrameHeader::new(StreamKind::Rgb8, 1280, 720)
+        .with_intrinsics(909.7, 909.9, 643.2, 357.8, [0.0; 5])
+}
+
+fn depth_stream() -> FrameHeader {
+    FrameHeader::new(StreamKind::Z16, 848, 480)
+        .with_intrinsics(421.4, 421.4, 422.1, 241.6, [0.0; 5])
+}
+
 /// `colour_from_depth`: 14.8 mm along x.
 const COLOUR_FROM_DEPTH: Extrinsic = Extrinsic {
     rotation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
@@ -42,7 +36,10 @@ const COLOUR_FROM_DEPTH: Extrinsic = Extrinsic {
 
 /// A tilted table with a box in the middle, in millimetres.
 fn depth_frame() -> Vec<u16> {
-    let (w, h) = (DEPTH.width as usize, DEPTH.height as usize);
+    let (w, h) = (
+        depth_stream().width as usize,
+        depth_stream().height as usize,
+    );
     (0..w * h)
         .map(|i| {
             let (u, v) = ((i % w) as f64, (i / w) as f64);
@@ -53,7 +50,7 @@ fn depth_frame() -> Vec<u16> {
         .collect()
 }
 
-fn camera_matrix(k: &Intrinsics) -> Mat {
+fn camera_matrix(k: &FrameHeader) -> Mat {
     Mat::from_slice_2d(&[[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]]).unwrap()
 }
 
@@ -67,15 +64,16 @@ fn opencv_register(depth: &Mat, dilate: bool) -> Mat {
         [0.0, 0.0, 0.0, 1.0],
     ])
     .unwrap();
-    let dist = Mat::from_slice(&COLOUR.dist).unwrap();
+    let colour_dist = colour().dist;
+    let dist = Mat::from_slice(&colour_dist).unwrap();
     let mut out = Mat::default();
     opencv::rgbd::register_depth(
-        &camera_matrix(&DEPTH),
-        &camera_matrix(&COLOUR),
+        &camera_matrix(&depth_stream()),
+        &camera_matrix(&colour()),
         &dist,
         &rt,
         depth,
-        Size::new(COLOUR.width as i32, COLOUR.height as i32),
+        Size::new(colour().width as i32, colour().height as i32),
         &mut out,
         dilate,
     )
@@ -85,33 +83,37 @@ fn opencv_register(depth: &Mat, dilate: bool) -> Mat {
 
 fn bench(c: &mut Criterion) {
     let depth = depth_frame();
-    let mut ours = vec![0u16; (COLOUR.width * COLOUR.height) as usize];
+    let mut ours = vec![0u16; (colour().width * colour().height) as usize];
     align_to_colour(
         &depth,
-        &DEPTH,
-        &COLOUR,
+        &depth_stream(),
+        &colour(),
         &COLOUR_FROM_DEPTH,
         0.001,
         &mut ours,
     )
     .unwrap();
     // registerDepth takes depth in metres (CV_32F) or millimetres (CV_16U).
-    let depth_mat = Mat::new_rows_cols_with_data(DEPTH.height as i32, DEPTH.width as i32, &depth)
-        .unwrap()
-        .try_clone()
-        .unwrap();
+    let depth_mat = Mat::new_rows_cols_with_data(
+        depth_stream().height as i32,
+        depth_stream().width as i32,
+        &depth,
+    )
+    .unwrap()
+    .try_clone()
+    .unwrap();
     let theirs = opencv_register(&depth_mat, true);
     // Where both have depth they agree, but along edges (1 px either way).
     let (mut both, mut differ) = (0usize, 0usize);
     for (k, z) in ours.iter().enumerate() {
-        let (v, u) = (k / COLOUR.width as usize, k % COLOUR.width as usize);
+        let (v, u) = (k / colour().width as usize, k % colour().width as usize);
         let o = *theirs.at_2d::<u16>(v as i32, u as i32).unwrap();
         if *z > 0 && o > 0 {
             both += 1;
             differ += usize::from(z.abs_diff(o) > 3);
         }
     }
-    let filled = |n: usize| n as f64 / (COLOUR.width * COLOUR.height) as f64;
+    let filled = |n: usize| n as f64 / (colour().width * colour().height) as f64;
     let ours_filled = ours.iter().filter(|z| **z > 0).count();
     eprintln!(
         "ours fills {:.1}% of the colour image, OpenCV (dilated) {:.1}%; both {:.1}%, {differ} pixels differ by more than 3 mm",
@@ -140,8 +142,8 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             align_to_colour(
                 black_box(&depth),
-                &DEPTH,
-                &COLOUR,
+                &depth_stream(),
+                &colour(),
                 &COLOUR_FROM_DEPTH,
                 0.001,
                 &mut ours,

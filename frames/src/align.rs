@@ -17,49 +17,29 @@
 
 use crate::{FrameHeader, FramesError};
 
-/// A pinhole with Brown-Conrady distortion `k1, k2, p1, p2, k3`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Intrinsics {
-    pub width: u32,
-    pub height: u32,
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub dist: [f64; 5],
+/// Checks that a stream's header carries intrinsics.
+fn check_intrinsics(h: &FrameHeader, what: &str) -> Result<(), FramesError> {
+    if !(h.fx > 0.0 && h.fy > 0.0 && h.fx.is_finite() && h.fy.is_finite()) {
+        return Err(FramesError::Align(format!(
+            "the {what} stream has no intrinsics"
+        )));
+    }
+    Ok(())
 }
 
-impl Intrinsics {
-    /// A frame header's intrinsics; an error when it has none.
-    pub fn of(h: &FrameHeader, what: &str) -> Result<Intrinsics, FramesError> {
-        if !(h.fx > 0.0 && h.fy > 0.0 && h.fx.is_finite() && h.fy.is_finite()) {
-            return Err(FramesError::Align(format!(
-                "the {what} stream has no intrinsics"
-            )));
-        }
-        Ok(Intrinsics {
-            width: h.width,
-            height: h.height,
-            fx: h.fx,
-            fy: h.fy,
-            cx: h.cx,
-            cy: h.cy,
-            dist: h.dist,
-        })
+/// Projects a point through a header's pinhole and its Brown-Conrady
+/// distortion `k1, k2, p1, p2, k3`.
+fn project(h: &FrameHeader, p: [f64; 3]) -> Option<[f64; 2]> {
+    if p[2] <= 0.0 {
+        return None;
     }
-
-    fn project(&self, p: [f64; 3]) -> Option<[f64; 2]> {
-        if p[2] <= 0.0 {
-            return None;
-        }
-        let (x, y) = (p[0] / p[2], p[1] / p[2]);
-        let [k1, k2, p1, p2, k3] = self.dist;
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        Some([self.fx * xd + self.cx, self.fy * yd + self.cy])
-    }
+    let (x, y) = (p[0] / p[2], p[1] / p[2]);
+    let [k1, k2, p1, p2, k3] = h.dist;
+    let r2 = x * x + y * y;
+    let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+    let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+    let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+    Some([h.fx * xd + h.cx, h.fy * yd + h.cy])
 }
 
 /// `colour_from_depth` as a row-major rotation and a translation (m).
@@ -85,25 +65,22 @@ impl Extrinsic {
     }
 }
 
-/// Aligns `depth` (row-major, `depth_intrinsics`' size, in units of
-/// `unit_m`; 0 = none) to the colour camera: `out` (the colour size, same
-/// unit) is overwritten. The depth stream must be undistorted (a D4xx's is).
+/// Aligns `depth` (row-major, the size of `depth_stream`, in units of
+/// `unit_m`; 0 = none) to the colour camera: `out` (the size of
+/// `colour_stream`, same unit) is overwritten. The headers give each stream's
+/// size and intrinsics; the depth stream must be undistorted (a D4xx's is).
 pub fn align_to_colour(
     depth: &[u16],
-    depth_intrinsics: &Intrinsics,
-    colour_intrinsics: &Intrinsics,
+    depth_stream: &FrameHeader,
+    colour_stream: &FrameHeader,
     colour_from_depth: &Extrinsic,
     unit_m: f64,
     out: &mut [u16],
 ) -> Result<(), FramesError> {
-    let (dw, dh) = (
-        depth_intrinsics.width as usize,
-        depth_intrinsics.height as usize,
-    );
-    let (cw, ch) = (
-        colour_intrinsics.width as usize,
-        colour_intrinsics.height as usize,
-    );
+    check_intrinsics(depth_stream, "depth")?;
+    check_intrinsics(colour_stream, "colour")?;
+    let (dw, dh) = (depth_stream.width as usize, depth_stream.height as usize);
+    let (cw, ch) = (colour_stream.width as usize, colour_stream.height as usize);
     if depth.len() != dw * dh {
         return Err(FramesError::Align(format!(
             "{} depth values for a {dw}x{dh} depth stream",
@@ -116,7 +93,7 @@ pub fn align_to_colour(
             out.len()
         )));
     }
-    if depth_intrinsics.dist.iter().any(|d| *d != 0.0) {
+    if depth_stream.dist.iter().any(|d| *d != 0.0) {
         return Err(FramesError::Align(
             "the depth stream carries distortion; only undistorted depth (as a D4xx delivers) is aligned"
                 .into(),
@@ -126,8 +103,8 @@ pub fn align_to_colour(
         return Err(FramesError::Align(format!("depth unit {unit_m} m")));
     }
     out.fill(0);
-    let d = depth_intrinsics;
-    let c = colour_intrinsics;
+    let d = depth_stream;
+    let c = colour_stream;
     let r = &colour_from_depth.rotation;
     let t = colour_from_depth.translation_m;
     // A corner of depth pixel (u, v) at depth z lands at
@@ -150,7 +127,7 @@ pub fn align_to_colour(
     let distorted = c.dist.iter().any(|k| *k != 0.0);
     let project = |q: [f64; 3]| -> Option<[f64; 2]> {
         if distorted {
-            return c.project(q);
+            return project(c, q);
         }
         if q[2] <= 0.0 {
             return None;
@@ -229,16 +206,9 @@ fn ceil_i(x: f64) -> i64 {
 mod tests {
     use super::*;
 
-    fn pinhole(w: u32, h: u32, f: f64) -> Intrinsics {
-        Intrinsics {
-            width: w,
-            height: h,
-            fx: f,
-            fy: f,
-            cx: (w as f64 - 1.0) / 2.0,
-            cy: (h as f64 - 1.0) / 2.0,
-            dist: [0.0; 5],
-        }
+    fn pinhole(w: u32, h: u32, f: f64) -> FrameHeader {
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        FrameHeader::new(crate::StreamKind::Z16, w, h).with_intrinsics(f, f, cx, cy, [0.0; 5])
     }
 
     const IDENTITY: Extrinsic = Extrinsic {

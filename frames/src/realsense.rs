@@ -36,7 +36,7 @@ use realsense_rust::kind::{Rs2Format, Rs2StreamKind, Rs2TimestampDomain};
 use realsense_rust::pipeline::{ActivePipeline, InactivePipeline};
 use realsense_rust::stream_profile::StreamProfile;
 
-use crate::align::{Extrinsic, Intrinsics, align_to_colour};
+use crate::align::{Extrinsic, align_to_colour};
 use crate::{FrameHeader, FramePublisher, FramesError, StreamKind};
 
 /// What to open.
@@ -108,8 +108,6 @@ pub enum Played {
 pub struct RealSense {
     pipeline: ActivePipeline,
     recorded: Recorded,
-    colour_intrinsics: Intrinsics,
-    depth_intrinsics: Intrinsics,
     colour_from_depth: Extrinsic,
     /// One depth frame as librealsense delivers it, and aligned.
     raw_depth: Vec<u16>,
@@ -244,14 +242,10 @@ impl RealSense {
                 colour.dist,
             )
         };
-        let colour_intrinsics = Intrinsics::of(&recorded.colour, "colour")?;
-        let depth_intrinsics = Intrinsics::of(&recorded.depth, "depth")?;
         let colour_from_depth = Extrinsic::colour_from_depth(&recorded.depth);
         Ok(RealSense {
             pipeline,
             recorded,
-            colour_intrinsics,
-            depth_intrinsics,
             colour_from_depth,
             raw_depth: Vec::new(),
             aligned: Vec::new(),
@@ -420,8 +414,8 @@ impl RealSense {
         self.aligned.resize(h.width as usize * h.height as usize, 0);
         align_to_colour(
             &self.raw_depth,
-            &self.depth_intrinsics,
-            &self.colour_intrinsics,
+            &self.recorded.depth,
+            &self.recorded.colour,
             &self.colour_from_depth,
             unit,
             &mut self.aligned,

@@ -792,14 +792,18 @@ impl IceoryxFrames {
         Ok(self)
     }
 
-    /// The depth frame numbered `number`: older ones are skipped; a newer one, or
-    /// none within `timeout`, means it is missing (a warning, not an error: the
-    /// capture still has its colour frame).
+    /// The depth frame of colour frame `colour`: the one numbered like it
+    /// (older ones are skipped). A newer one, none within `timeout`, or one
+    /// exposed more than [`DEPTH_PAIR_WINDOW_NS`] from the colour frame means the
+    /// capture has no depth (a warning, not an error: it still has its colour
+    /// frame). A depth frame of another size than its colour frame is an error:
+    /// depth must come aligned to colour (the camera process aligns it).
     fn depth_of(
         &mut self,
-        number: u64,
+        colour: &LiveFrame,
         timeout: Duration,
     ) -> anyhow::Result<Option<(b2b_vision::features::DepthImage, f64)>> {
+        let number = colour.number;
         let Some(sub) = self.depth.as_mut() else {
             return Ok(None);
         };
@@ -834,6 +838,23 @@ impl IceoryxFrames {
                 h.depth_unit_m > 0.0 && h.depth_unit_m.is_finite(),
                 "depth frame {number} has no depth unit"
             );
+            anyhow::ensure!(
+                (h.width, h.height) == (colour.camera.width, colour.camera.height),
+                "depth frame {number} is {}x{} but its colour frame is {}x{}: depth must be aligned to colour",
+                h.width,
+                h.height,
+                colour.camera.width,
+                colour.camera.height
+            );
+            let gap = h.timestamp_ns.abs_diff(colour.timestamp_ns);
+            if gap > DEPTH_PAIR_WINDOW_NS {
+                tracing::warn!(
+                    "depth frame {number} was exposed {:.1} ms from its colour frame (at most {:.1} ms): capture without depth",
+                    gap as f64 / 1e6,
+                    DEPTH_PAIR_WINDOW_NS as f64 / 1e6
+                );
+                return Ok(None);
+            }
             let mut data = Vec::with_capacity(h.width as usize * h.height as usize);
             for y in 0..h.height {
                 let row = frame.row(y).context("short depth frame")?;
@@ -853,6 +874,12 @@ impl IceoryxFrames {
         Ok(None)
     }
 }
+
+/// The largest gap between a colour frame's and its depth frame's exposure
+/// for the two to be one capture: below a frame period at 30 fps (33 ms), so a
+/// depth frame one frame off is never taken for this one's. The camera process
+/// pairs within half a period; this is the agent's own check of what arrives.
+pub const DEPTH_PAIR_WINDOW_NS: u64 = 20_000_000;
 
 /// Converts a received frame to grey (RGB is averaged with the BT.601 weights).
 fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
@@ -892,7 +919,7 @@ impl IceoryxFrames {
     fn live_frame(&mut self, frame: b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
         let mut live = to_live(&frame)?;
         drop(frame);
-        live.depth = self.depth_of(live.number, Duration::from_secs(2))?;
+        live.depth = self.depth_of(&live, Duration::from_secs(2))?;
         Ok(live)
     }
 }

@@ -131,8 +131,16 @@ impl Calib {
         })
     }
 
-    /// The header of an opened image, checked against the manifest.
-    fn header(&self, png: &PngImage, path: &Path, n: u64) -> anyhow::Result<FrameHeader> {
+    /// The header of an opened image, checked against the manifest; `t_ns` is
+    /// its capture's time (colour and depth of one capture share it: one
+    /// exposure, as the format's aligned depth means).
+    fn header(
+        &self,
+        png: &PngImage,
+        path: &Path,
+        n: u64,
+        t_ns: u64,
+    ) -> anyhow::Result<FrameHeader> {
         let mut h = png.header();
         if let Some(([fx, fy, cx, cy], dist, w, ht)) = self.camera {
             ensure!(
@@ -151,7 +159,7 @@ impl Calib {
         }
         // Depth images of the format are aligned to the colour image: the
         // extrinsic stays the identity.
-        Ok(h.at(n, b2b_frames::now_ns()))
+        Ok(h.at(n, t_ns))
     }
 }
 
@@ -186,7 +194,7 @@ fn replay(cli: &Cli, dir: &Path) -> anyhow::Result<serde_json::Value> {
                 "{}: a 16-bit image in the image column",
                 p.display()
             );
-            calib.header(&png, p, 0)?;
+            calib.header(&png, p, 0, 0)?;
             colour_bytes = colour_bytes.max(png.header().payload_len());
         }
         if let Some(p) = &item.depth {
@@ -197,7 +205,7 @@ fn replay(cli: &Cli, dir: &Path) -> anyhow::Result<serde_json::Value> {
                 p.display(),
                 png.kind().name()
             );
-            calib.header(&png, p, 0)?;
+            calib.header(&png, p, 0, 0)?;
             depth_bytes = depth_bytes.max(png.header().payload_len());
         }
     }
@@ -219,14 +227,15 @@ fn replay(cli: &Cli, dir: &Path) -> anyhow::Result<serde_json::Value> {
                 break 'replay;
             }
             n += 1;
+            let t_ns = b2b_frames::now_ns();
             if let (Some(p), Some(out)) = (&item.image, colour.as_mut()) {
                 let png = PngImage::open(p)?;
-                let h = calib.header(&png, p, n)?;
+                let h = calib.header(&png, p, n, t_ns)?;
                 out.publish_png(png, &h)?;
             }
             if let (Some(p), Some(out)) = (&item.depth, depth.as_mut()) {
                 let png = PngImage::open(p)?;
-                let h = calib.header(&png, p, n)?;
+                let h = calib.header(&png, p, n, t_ns)?;
                 out.publish_png(png, &h)?;
             }
             if let Some(period) = period {
