@@ -5,12 +5,10 @@
 //! A D4xx's depth comes from another sensor than its colour, at another
 //! resolution, with an extrinsic between the two. The depth published is aligned
 //! to colour ([`crate::align`], with the intrinsics and extrinsic librealsense
-//! reports; librealsense's own align block lets a farther surface overwrite a
-//! nearer one at edges): the colour stream's size and intrinsics, an identity
-//! extrinsic, and the colour frame's number, which is how the agent pairs the
-//! two. Colour and depth are
-//! paired only when librealsense's timestamps are within
-//! [`RealSenseOptions::pair_window_ns`]; a colour frame without such a depth frame
+//! reports): the colour stream's size and intrinsics, an identity extrinsic, and
+//! the colour frame's number, which is how the agent pairs the two. Colour and
+//! depth are paired only when librealsense's timestamps are within half a frame
+//! period ([`RealSense::pair_window_ns`]); a colour frame without such a depth frame
 //! is published alone (counted, and logged with the gap), never with another
 //! frame's depth. What the device reports about its depth sensor (intrinsics,
 //! the depth-from-colour extrinsic) is kept in [`RealSense::recorded`].
@@ -51,11 +49,9 @@ pub struct RealSenseOptions {
     pub loop_playback: bool,
     pub colour: (u32, u32),
     pub depth: (u32, u32),
+    /// Frames per second asked of a device; a recording plays at its own
+    /// rate. Half its period is the colour-depth pairing window.
     pub fps: u32,
-    /// The largest gap (ns) between a colour frame's and a depth frame's
-    /// timestamps for them to be one capture. Default: half a frame period at
-    /// 30 fps, so a frame is paired with its own exposure or none.
-    pub pair_window_ns: u64,
 }
 
 impl Default for RealSenseOptions {
@@ -67,7 +63,6 @@ impl Default for RealSenseOptions {
             colour: (1280, 720),
             depth: (848, 480),
             fps: 30,
-            pair_window_ns: 16_666_667,
         }
     }
 }
@@ -254,7 +249,8 @@ impl RealSense {
             colour,
             depth: aligned,
             playback: options.bag.is_some(),
-            pair_window_ns: options.pair_window_ns,
+            // Half a frame period: a colour frame pairs with its own exposure or none.
+            pair_window_ns: 500_000_000 / u64::from(options.fps.max(1)),
             clock_offset: None,
             last_raw_number: 0,
             number_offset: 0,
@@ -270,6 +266,23 @@ impl RealSense {
     /// Colour frames published without depth: none within the pairing window.
     pub fn unpaired(&self) -> u64 {
         self.unpaired
+    }
+
+    /// The largest gap (ns) between a colour frame's and a depth frame's
+    /// timestamps for them to be one capture.
+    pub fn pair_window_ns(&self) -> u64 {
+        self.pair_window_ns
+    }
+
+    /// The colour frame waiting for depth goes without it.
+    fn give_up_waiting(&mut self, out: &mut Vec<Played>) {
+        if let Some(w) = self.waiting.take() {
+            self.unpaired += 1;
+            out.push(Played::Unpaired {
+                number: w.number,
+                nearest_depth_ns: w.nearest_gap_ns,
+            });
+        }
     }
 
     /// The sample sizes the two publishers need: (colour, aligned depth).
@@ -307,21 +320,22 @@ impl RealSense {
             Ok(f) => f,
             // A recording played once ends with no more frames.
             Err(_) if self.playback && self.last_raw_number > 0 => {
-                if let Some(w) = self.waiting.take() {
-                    self.unpaired += 1;
-                    out.push(w.unpaired());
-                }
+                self.give_up_waiting(&mut out);
                 out.push(Played::End);
                 return Ok(out);
             }
             Err(e) => return Err(rs("waiting for frames", e)),
         };
-        // The frameset's depth frame, unless it already went out.
+        // The frameset's depth frame (and its time), unless it already went out.
         let d = frames
             .frames_of_type::<DepthFrame>()
             .into_iter()
             .next()
-            .filter(|d| d.frame_number() != self.last_depth_raw);
+            .filter(|d| d.frame_number() != self.last_depth_raw)
+            .map(|d| {
+                let t = self.host_time(&d);
+                (d, t)
+            });
         let c = frames
             .frames_of_type::<ColorFrame>()
             .into_iter()
@@ -329,11 +343,10 @@ impl RealSense {
             .filter(|c| c.frame_number() != self.last_raw_number);
         // A depth frame for the colour frame waiting for one.
         let mut depth_used = false;
-        if let (Some(d), Some(w)) = (&d, self.waiting) {
-            let t = self.host_time(d);
+        if let (Some((d, t)), Some(w)) = (&d, self.waiting) {
             let gap = t.abs_diff(w.time_ns);
             if gap <= self.pair_window_ns {
-                self.publish_depth(depth, d, w.number, t)?;
+                self.publish_depth(depth, d, w.number, *t)?;
                 out.push(Played::Depth { number: w.number });
                 self.waiting = None;
                 depth_used = true;
@@ -344,10 +357,7 @@ impl RealSense {
         let Some(c) = c else {
             return Ok(out);
         };
-        if let Some(w) = self.waiting.take() {
-            self.unpaired += 1;
-            out.push(w.unpaired());
-        }
+        self.give_up_waiting(&mut out);
         let raw = c.frame_number();
         if raw < self.last_raw_number {
             // The recording started again: numbers go on, times start afresh.
@@ -377,11 +387,10 @@ impl RealSense {
             time_ns: colour_time,
             nearest_gap_ns: None,
         };
-        if let Some(d) = d.as_ref().filter(|_| !depth_used) {
-            let t = self.host_time(d);
+        if let Some((d, t)) = d.as_ref().filter(|_| !depth_used) {
             let gap = t.abs_diff(colour_time);
             if gap <= self.pair_window_ns {
-                self.publish_depth(depth, d, number, t)?;
+                self.publish_depth(depth, d, number, *t)?;
                 out.push(Played::Depth { number });
                 return Ok(out);
             }
@@ -437,15 +446,6 @@ struct Waiting {
     time_ns: u64,
     /// The nearest depth frame seen so far, outside the window.
     nearest_gap_ns: Option<u64>,
-}
-
-impl Waiting {
-    fn unpaired(&self) -> Played {
-        Played::Unpaired {
-            number: self.number,
-            nearest_depth_ns: self.nearest_gap_ns,
-        }
-    }
 }
 
 fn check_size(h: &FrameHeader, width: usize, height: usize) -> Result<(), FramesError> {

@@ -17,7 +17,7 @@ use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use crate::Iso3;
 use crate::error::SimError;
 use crate::render::{RenderSettings, Renderer, SceneGeometry};
-use crate::sensor::{RgbImage, SensorNoise, expose_rgb};
+use crate::sensor::{DepthModel, RgbImage, SensorNoise, expose_rgb};
 
 /// The two sensors and what is between them.
 #[derive(Debug, Clone, PartialEq)]
@@ -76,6 +76,17 @@ pub fn render(
     let mut settings = settings.clone();
     settings.colour = true;
     let mut rng: crate::Rng = rand::SeedableRng::seed_from_u64(1);
+    // The sensor model without its noise, dropouts or edge losses: depth
+    // quantised to the unit, 0 where nothing was hit.
+    let exact = DepthModel {
+        subpixel: 0.0,
+        min_m: 0.0,
+        max_m: 65535.0 * camera.depth_unit_m,
+        edge_jump: f64::INFINITY,
+        dropout: 0.0,
+        unit_m: camera.depth_unit_m,
+        ..DepthModel::default()
+    };
     colour_from_world
         .iter()
         .map(|pose| {
@@ -83,11 +94,7 @@ pub fn render(
             let d = depth.render(&(camera.depth_from_colour * pose), geometry, &settings);
             Ok(D435Frame {
                 colour: expose_rgb(&c, &SensorNoise::none(), &mut rng),
-                depth: d
-                    .depth_m
-                    .iter()
-                    .map(|z| (f64::from(*z) / camera.depth_unit_m).round().min(65535.0) as u16)
-                    .collect(),
+                depth: exact.measure(&d, &mut rng).data,
                 colour_depth_m: c.depth_m,
             })
         })

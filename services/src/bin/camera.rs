@@ -273,8 +273,6 @@ fn realsense(cli: &Cli) -> anyhow::Result<serde_json::Value> {
         bag: cli.bag.clone(),
         loop_playback: !cli.once,
         fps,
-        // Half a frame period: a colour frame pairs with its own exposure or none.
-        pair_window_ns: 500_000_000 / u64::from(fps),
         ..RealSenseOptions::default()
     };
     let mut camera = RealSense::open(&options)?;
@@ -303,7 +301,7 @@ fn realsense(cli: &Cli) -> anyhow::Result<serde_json::Value> {
                     Some(gap) => tracing::warn!(
                         "colour frame {number}: the nearest depth frame was exposed {:.1} ms away (window {:.1} ms); published without depth",
                         gap as f64 / 1e6,
-                        options.pair_window_ns as f64 / 1e6
+                        camera.pair_window_ns() as f64 / 1e6
                     ),
                     None => tracing::warn!(
                         "colour frame {number}: no depth frame came with it; published without depth"
