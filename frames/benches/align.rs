@@ -11,44 +11,15 @@
 
 use std::hint::black_box;
 
-use b2b_frames::align::{Extrinsic, align_to_colour};
-use b2b_frames::{FrameHeader, StreamKind};
+#[path = "common/d435.rs"]
+mod d435;
+
+use b2b_frames::FrameHeader;
+use b2b_frames::align::align_to_colour;
 use criterion::{Criterion, criterion_group, criterion_main};
+use d435::{COLOUR_FROM_DEPTH, colour, depth_frame, depth_stream};
 use opencv::core::{Mat, Size};
 use opencv::prelude::*;
-
-/// A D435's factory streams.
-fn colour() -> FrameHeader {
-    FrameHeader::new(StreamKind::Rgb8, 1280, 720)
-        .with_intrinsics(909.7, 909.9, 643.2, 357.8, [0.0; 5])
-}
-
-fn depth_stream() -> FrameHeader {
-    FrameHeader::new(StreamKind::Z16, 848, 480)
-        .with_intrinsics(421.4, 421.4, 422.1, 241.6, [0.0; 5])
-}
-
-/// `colour_from_depth`: 14.8 mm along x.
-const COLOUR_FROM_DEPTH: Extrinsic = Extrinsic {
-    rotation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-    translation_m: [0.0148, 0.0, 0.0],
-};
-
-/// A tilted table with a box in the middle, in millimetres.
-fn depth_frame() -> Vec<u16> {
-    let (w, h) = (
-        depth_stream().width as usize,
-        depth_stream().height as usize,
-    );
-    (0..w * h)
-        .map(|i| {
-            let (u, v) = ((i % w) as f64, (i / w) as f64);
-            let table = 600.0 + 0.2 * v;
-            let in_box = (300.0..520.0).contains(&u) && (150.0..330.0).contains(&v);
-            (if in_box { table - 150.0 } else { table }).round() as u16
-        })
-        .collect()
-}
 
 fn camera_matrix(k: &FrameHeader) -> Mat {
     Mat::from_slice_2d(&[[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]]).unwrap()

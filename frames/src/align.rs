@@ -10,6 +10,12 @@
 //! from its side, the nearer surface is the one in view). Colour pixels no depth
 //! pixel reaches (seen by colour, hidden from depth) stay 0.
 //!
+//! Speed: per depth row, the patches are computed in one branch-free pass (f32,
+//! vectorised) and then written; the rows are shared among up to four threads,
+//! each writing its own band of colour rows (writes across a band's edge wait
+//! for the join; the z-test is a minimum, so the image does not depend on the
+//! number of threads).
+//!
 //! Ours rather than librealsense's align block: it needs no librealsense, so it
 //! is tested and benchmarked everywhere (`benches/align.rs`, against OpenCV's
 //! `rgbd::registerDepth`), and held to 1 px at edges on rendered D435
@@ -102,11 +108,64 @@ pub fn align_to_colour(
     if !(unit_m > 0.0 && unit_m.is_finite()) {
         return Err(FramesError::Align(format!("depth unit {unit_m} m")));
     }
-    out.fill(0);
-    let d = depth_stream;
-    let c = colour_stream;
+    let bands = std::thread::available_parallelism().map_or(1, |n| n.get().min(MAX_BANDS));
+    splat_in_bands(
+        depth,
+        depth_stream,
+        colour_stream,
+        colour_from_depth,
+        unit_m,
+        out,
+        bands,
+    );
+    Ok(())
+}
+
+/// At most this many threads align one frame.
+const MAX_BANDS: usize = 4;
+
+/// The per-frame constants of the splat: per depth-pixel edge, its ray's part
+/// in the colour frame.
+struct Splat<'a> {
+    depth: &'a [u16],
+    dw: usize,
+    cw: usize,
+    ch: usize,
+    colour: &'a FrameHeader,
+    distorted: bool,
+    t: [f64; 3],
+    unit_m: f64,
+    xs: Vec<[f64; 3]>,
+    ys: Vec<[f64; 3]>,
+    /// The same in f32, the columns' split by component (for vectorising).
+    xs32: [Vec<f32>; 3],
+    ys32: Vec<[f32; 3]>,
+}
+
+/// The part of the colour image one thread writes: rows `first..first + n`.
+struct Band<'a> {
+    first: usize,
+    out: &'a mut [u16],
+}
+
+/// Splats depth rows in `bands` threads. Band `i` takes a share of the depth
+/// rows and writes the colour rows their middle maps onto at 1 m; a write
+/// outside a thread's own rows (parallax, a rotated extrinsic) is kept and
+/// applied after the threads join. The z-test (0 = none, else the nearest) is
+/// a minimum, so the order of writes does not matter: any number of bands
+/// gives the same image.
+fn splat_in_bands(
+    depth: &[u16],
+    d: &FrameHeader,
+    c: &FrameHeader,
+    colour_from_depth: &Extrinsic,
+    unit_m: f64,
+    out: &mut [u16],
+    bands: usize,
+) {
+    let (dw, dh) = (d.width as usize, d.height as usize);
+    let (cw, ch) = (c.width as usize, c.height as usize);
     let r = &colour_from_depth.rotation;
-    let t = colour_from_depth.translation_m;
     // A corner of depth pixel (u, v) at depth z lands at
     // z (x_u R[:,0] + y_v R[:,1] + R[:,2]) + t in the colour camera: the column
     // and row terms are computed once per pixel edge.
@@ -124,9 +183,86 @@ pub fn align_to_colour(
             [y * c1[0] + c2[0], y * c1[1] + c2[1], y * c1[2] + c2[2]]
         })
         .collect();
-    let distorted = c.dist.iter().any(|k| *k != 0.0);
-    let project = |q: [f64; 3]| -> Option<[f64; 2]> {
-        if distorted {
+    let splat = Splat {
+        depth,
+        dw,
+        cw,
+        ch,
+        colour: c,
+        distorted: c.dist.iter().any(|k| *k != 0.0),
+        t: colour_from_depth.translation_m,
+        unit_m,
+        xs32: [0, 1, 2].map(|k| xs.iter().map(|x| x[k] as f32).collect()),
+        ys32: ys.iter().map(|y| y.map(|x| x as f32)).collect(),
+        xs,
+        ys,
+    };
+    out.fill(0);
+    let bands = bands.clamp(1, dh.max(1));
+    if bands == 1 {
+        let mut spill = Vec::new();
+        splat.rows(0..dh, Band { first: 0, out }, &mut spill);
+        return;
+    }
+    // Band i: depth rows [dh i / n, dh (i+1) / n); colour rows from where the
+    // first of them lands at 1 m, in the middle column (monotone, clamped).
+    let depth_rows = |i: usize| dh * i / bands;
+    let mut colour_rows: Vec<usize> = (0..=bands)
+        .map(|i| match i {
+            0 => 0,
+            i if i == bands => ch,
+            i => {
+                let q = splat.corner(1.0, dw / 2, depth_rows(i));
+                splat.project(q).map_or(ch * i / bands, |p| {
+                    p[1].round().clamp(0.0, ch as f64) as usize
+                })
+            }
+        })
+        .collect();
+    for i in 1..=bands {
+        colour_rows[i] = colour_rows[i].max(colour_rows[i - 1]);
+    }
+    let mut spills: Vec<Vec<(usize, u16)>> = vec![Vec::new(); bands];
+    std::thread::scope(|scope| {
+        let mut rest = &mut out[..];
+        let splat = &splat;
+        for (i, spill) in spills.iter_mut().enumerate() {
+            let (mine, later) = rest.split_at_mut((colour_rows[i + 1] - colour_rows[i]) * cw);
+            rest = later;
+            let band = Band {
+                first: colour_rows[i],
+                out: mine,
+            };
+            let rows = depth_rows(i)..depth_rows(i + 1);
+            scope.spawn(move || splat.rows(rows, band, spill));
+        }
+    });
+    for (k, z) in spills.into_iter().flatten() {
+        out[k] = nearer(out[k], z);
+    }
+}
+
+/// The z-test: 0 is no depth, otherwise the nearer wins (branch-free: 0 wraps
+/// to the largest value).
+fn nearer(old: u16, new: u16) -> u16 {
+    old.wrapping_sub(1).min(new - 1) + 1
+}
+
+impl Splat<'_> {
+    /// Depth pixel corner `(u, v)` (of pixel `(u, v)`'s top left, in the
+    /// tables' indexing) at depth `z` (m), in the colour frame.
+    fn corner(&self, z: f64, u: usize, v: usize) -> [f64; 3] {
+        let (x, y, t) = (self.xs[u], self.ys[v], self.t);
+        [
+            z * (x[0] + y[0]) + t[0],
+            z * (x[1] + y[1]) + t[1],
+            z * (x[2] + y[2]) + t[2],
+        ]
+    }
+
+    fn project(&self, q: [f64; 3]) -> Option<[f64; 2]> {
+        let c = self.colour;
+        if self.distorted {
             return project(c, q);
         }
         if q[2] <= 0.0 {
@@ -134,72 +270,190 @@ pub fn align_to_colour(
         }
         let w = 1.0 / q[2];
         Some([c.fx * q[0] * w + c.cx, c.fy * q[1] * w + c.cy])
-    };
-    let (cwi, chi) = (cw as i64 - 1, ch as i64 - 1);
-    for v in 0..dh {
-        let (ya, yb) = (ys[v], ys[v + 1]);
-        for u in 0..dw {
-            let raw = depth[v * dw + u];
-            if raw == 0 {
-                continue;
+    }
+
+    /// Each pixel of depth row `v`: the colour-image box its patch spans and
+    /// its depth in the colour frame (in depth units; 0: it lands nowhere).
+    /// Undistorted colour (a D4xx's factory model) takes a branch-free pass in
+    /// f32, which the compiler vectorises (f32 is exact to 1e-4 px at this
+    /// size); distorted colour goes pixel by pixel in f64.
+    fn patches(&self, v: usize, p: &mut Patches) {
+        let row = &self.depth[v * self.dw..(v + 1) * self.dw];
+        if self.distorted {
+            for (u, raw) in row.iter().enumerate() {
+                let z = f64::from(*raw) * self.unit_m;
+                let (qa, qb) = (self.corner(z, u, v), self.corner(z, u + 1, v + 1));
+                let (a, b) = match (self.project(qa), self.project(qb)) {
+                    (Some(a), Some(b)) if *raw > 0 => (a, b),
+                    _ => ([0.0; 2], [0.0; 2]),
+                };
+                p.u_lo[u] = a[0].min(b[0]) as f32;
+                p.u_hi[u] = a[0].max(b[0]) as f32;
+                p.v_lo[u] = a[1].min(b[1]) as f32;
+                p.v_hi[u] = a[1].max(b[1]) as f32;
+                p.z[u] = if *raw > 0 && qa[2] > 0.0 && qb[2] > 0.0 {
+                    (0.5 * (qa[2] + qb[2]) / self.unit_m) as f32
+                } else {
+                    0.0
+                };
             }
-            let z = f64::from(raw) * unit_m;
-            let (xa, xb) = (xs[u], xs[u + 1]);
-            let corner = |x: [f64; 3], y: [f64; 3]| {
-                [
-                    z * (x[0] + y[0]) + t[0],
-                    z * (x[1] + y[1]) + t[1],
-                    z * (x[2] + y[2]) + t[2],
-                ]
+            return;
+        }
+        let c = self.colour;
+        let (fx, fy, cx, cy) = (c.fx as f32, c.fy as f32, c.cx as f32, c.cy as f32);
+        let unit = self.unit_m as f32;
+        let half_per_unit = (0.5 / self.unit_m) as f32;
+        let t = self.t.map(|x| x as f32);
+        let (ya, yb) = (self.ys32[v], self.ys32[v + 1]);
+        let n = self.dw;
+        let [x0, x1, x2] = &self.xs32;
+        let (xa0, xa1, xa2) = (&x0[..n], &x1[..n], &x2[..n]);
+        let (xb0, xb1, xb2) = (&x0[1..=n], &x1[1..=n], &x2[1..=n]);
+        let (u_lo, u_hi) = (&mut p.u_lo[..n], &mut p.u_hi[..n]);
+        let (v_lo, v_hi, zs) = (&mut p.v_lo[..n], &mut p.v_hi[..n], &mut p.z[..n]);
+        for u in 0..n {
+            let z = f32::from(row[u]) * unit;
+            let qa = [
+                z * (xa0[u] + ya[0]) + t[0],
+                z * (xa1[u] + ya[1]) + t[1],
+                z * (xa2[u] + ya[2]) + t[2],
+            ];
+            let qb = [
+                z * (xb0[u] + yb[0]) + t[0],
+                z * (xb1[u] + yb[1]) + t[1],
+                z * (xb2[u] + yb[2]) + t[2],
+            ];
+            let (wa, wb) = (1.0 / qa[2], 1.0 / qb[2]);
+            let (au, av) = (fx * qa[0] * wa + cx, fy * qa[1] * wa + cy);
+            let (bu, bv) = (fx * qb[0] * wb + cx, fy * qb[1] * wb + cy);
+            u_lo[u] = if au < bu { au } else { bu };
+            u_hi[u] = if au < bu { bu } else { au };
+            v_lo[u] = if av < bv { av } else { bv };
+            v_hi[u] = if av < bv { bv } else { av };
+            // No depth, or behind the colour camera: nowhere.
+            let visible = z > 0.0 && qa[2] > 0.0 && qb[2] > 0.0;
+            zs[u] = if visible {
+                (qa[2] + qb[2]) * half_per_unit
+            } else {
+                0.0
             };
-            let (qa, qb) = (corner(xa, ya), corner(xb, yb));
-            let (Some(a), Some(b)) = (project(qa), project(qb)) else {
-                continue;
-            };
-            let zc = 0.5 * (qa[2] + qb[2]) / unit_m;
-            if !(1.0..65535.5).contains(&zc) {
-                continue;
-            }
-            // Positive: +0.5 and truncation round it (no libm call).
-            let zc = (zc + 0.5) as u16;
-            // The colour pixels whose centres the patch covers (at least one).
-            let (amin, amax) = (a[0].min(b[0]), a[0].max(b[0]));
-            let (bmin, bmax) = (a[1].min(b[1]), a[1].max(b[1]));
-            let (mut u0, mut u1) = (ceil_i(amin).max(0), floor_i(amax).min(cwi));
-            let (mut v0, mut v1) = (ceil_i(bmin).max(0), floor_i(bmax).min(chi));
-            if u0 > u1 || v0 > v1 {
-                // Smaller than a colour pixel: the one holding its centre.
-                let cu = floor_i(0.5 * (amin + amax) + 0.5);
-                let cv = floor_i(0.5 * (bmin + bmax) + 0.5);
-                if !(0..=cwi).contains(&cu) || !(0..=chi).contains(&cv) {
+        }
+    }
+
+    /// Splats depth `rows` into `band`; writes that fall outside it go to
+    /// `spill` as (index in the whole image, depth).
+    fn rows(&self, rows: std::ops::Range<usize>, band: Band<'_>, spill: &mut Vec<(usize, u16)>) {
+        let cw = self.cw;
+        let (last_u, last_v) = (cw as i32 - 1, self.ch as i32 - 1);
+        let band_rows = band.first..band.first + band.out.len() / cw.max(1);
+        let mut p = Patches::new(self.dw);
+        for v in rows {
+            self.patches(v, &mut p);
+            p.spans(last_u, last_v);
+            for u in 0..self.dw {
+                let zc = p.depth[u];
+                let (u0, u1, v0, v1) = (p.u0[u], p.u1[u], p.v0[u], p.v1[u]);
+                if zc == 0 || u0 > u1 || v0 > v1 {
                     continue;
                 }
-                (u0, u1, v0, v1) = (cu, cu, cv, cv);
-            }
-            let (u0, u1) = (u0 as usize, u1 as usize);
-            for y in v0 as usize..=v1 as usize {
-                for px in &mut out[y * cw + u0..=y * cw + u1] {
-                    if *px == 0 || zc < *px {
-                        *px = zc;
+                let (u0, u1) = (u0 as usize, u1 as usize);
+                for y in v0 as usize..=v1 as usize {
+                    if band_rows.contains(&y) {
+                        let row = (y - band.first) * cw;
+                        for px in &mut band.out[row + u0..=row + u1] {
+                            *px = nearer(*px, zc);
+                        }
+                    } else {
+                        spill.extend((u0..=u1).map(|x| (y * cw + x, zc)));
                     }
                 }
             }
         }
     }
-    Ok(())
 }
 
-/// `floor` and `ceil` to integers by truncation: `f64::floor` is a libm call on
-/// x86-64 without SSE4.1, and this loop runs them four times per depth pixel.
-/// Values far outside `i64` saturate, which the clamps above handle.
-fn floor_i(x: f64) -> i64 {
-    let t = x as i64;
-    t - i64::from((t as f64) > x)
+/// One depth row's patches in the colour image: the box each spans (pixels)
+/// and its depth there (depth units; 0: none).
+struct Patches {
+    u_lo: Vec<f32>,
+    u_hi: Vec<f32>,
+    v_lo: Vec<f32>,
+    v_hi: Vec<f32>,
+    z: Vec<f32>,
+    /// From those ([`Patches::spans`]): the colour pixels covered, and depth
+    /// in units.
+    u0: Vec<i32>,
+    u1: Vec<i32>,
+    v0: Vec<i32>,
+    v1: Vec<i32>,
+    depth: Vec<u16>,
 }
 
-fn ceil_i(x: f64) -> i64 {
-    let t = x as i64;
-    t + i64::from((t as f64) < x)
+impl Patches {
+    fn new(n: usize) -> Patches {
+        Patches {
+            u_lo: vec![0.0; n],
+            u_hi: vec![0.0; n],
+            v_lo: vec![0.0; n],
+            v_hi: vec![0.0; n],
+            z: vec![0.0; n],
+            u0: vec![0; n],
+            u1: vec![0; n],
+            v0: vec![0; n],
+            v1: vec![0; n],
+            depth: vec![0; n],
+        }
+    }
+
+    /// The colour pixels each patch covers: those whose centres it spans
+    /// (along an axis it spans none of, the one holding its centre), clipped
+    /// to the image (`last_u`, `last_v`: the last column and row); and its
+    /// depth rounded to a unit (0: none or out of range). Branch-free, so
+    /// vectorised.
+    fn spans(&mut self, last_u: i32, last_v: i32) {
+        let n = self.z.len();
+        let (u_lo, u_hi, v_lo, v_hi) = (
+            &self.u_lo[..n],
+            &self.u_hi[..n],
+            &self.v_lo[..n],
+            &self.v_hi[..n],
+        );
+        let (u0, u1, v0, v1) = (
+            &mut self.u0[..n],
+            &mut self.u1[..n],
+            &mut self.v0[..n],
+            &mut self.v1[..n],
+        );
+        let (z, depth) = (&self.z[..n], &mut self.depth[..n]);
+        for k in 0..n {
+            (u0[k], u1[k]) = span(u_lo[k], u_hi[k], last_u);
+            (v0[k], v1[k]) = span(v_lo[k], v_hi[k], last_v);
+            let ok = z[k] >= 1.0 && z[k] < 65535.5;
+            // Positive: +0.5 and truncation round it.
+            depth[k] = if ok { (z[k] + 0.5) as u16 } else { 0 };
+        }
+    }
+}
+
+/// The pixel centres in `[lo, hi]`, or the one nearest its middle when there
+/// are none, clipped to `0..=last` (empty when outside).
+fn span(lo: f32, hi: f32, last: i32) -> (i32, i32) {
+    let (a, b) = (ceil_i(lo), floor_i(hi));
+    let mid = floor_i(0.5 * (lo + hi) + 0.5);
+    let (a, b) = if a > b { (mid, mid) } else { (a, b) };
+    (a.max(0), b.min(last))
+}
+
+/// `floor` and `ceil` to integers by truncation (no libm call, and
+/// vectorised). Values outside `i32` saturate, NaN gives 0 (its depth is 0).
+fn floor_i(x: f32) -> i32 {
+    let t = x as i32;
+    t - i32::from((t as f32) > x)
+}
+
+fn ceil_i(x: f32) -> i32 {
+    let t = x as i32;
+    t + i32::from((t as f32) < x)
 }
 
 #[cfg(test)]
@@ -257,6 +511,59 @@ mod tests {
         assert_eq!(row[146], 1000);
         // No far value ever lands on the near plane.
         assert!(row[..edge_x - 1].iter().all(|z| *z == 400 || *z == 0));
+    }
+
+    #[test]
+    fn any_number_of_threads_gives_the_same_image() {
+        // A turned extrinsic with a vertical offset and a near box: patches
+        // cross the bands' seams both ways (parallax, rotation), and distortion.
+        let d = pinhole(160, 120, 150.0);
+        let c = FrameHeader::new(crate::StreamKind::Rgb8, 256, 144).with_intrinsics(
+            230.0,
+            231.0,
+            127.0,
+            70.0,
+            [0.05, -0.02, 0.001, -0.001, 0.0],
+        );
+        let (a, b) = (0.04f64, -0.03f64);
+        let e = Extrinsic {
+            // Rx(a) Ry(b), row-major.
+            rotation: [
+                b.cos(),
+                0.0,
+                b.sin(),
+                a.sin() * b.sin(),
+                a.cos(),
+                -a.sin() * b.cos(),
+                -a.cos() * b.sin(),
+                a.sin(),
+                a.cos() * b.cos(),
+            ],
+            translation_m: [0.015, -0.03, 0.002],
+        };
+        let depth: Vec<u16> = (0..160 * 120)
+            .map(|i| {
+                let (u, v) = (i % 160, i / 160);
+                if (40..110).contains(&u) && (50..75).contains(&v) {
+                    250
+                } else if u % 17 == 3 {
+                    0
+                } else {
+                    600 + (v as u16) * 2
+                }
+            })
+            .collect();
+        let serial = {
+            let mut out = vec![0; 256 * 144];
+            splat_in_bands(&depth, &d, &c, &e, 0.001, &mut out, 1);
+            out
+        };
+        assert!(serial.iter().filter(|z| **z > 0).count() > 256 * 144 / 2);
+        for bands in [2, 3, 4, 7] {
+            let mut out = vec![7; 256 * 144];
+            splat_in_bands(&depth, &d, &c, &e, 0.001, &mut out, bands);
+            assert!(out == serial, "{bands} bands differ from one");
+        }
     }
 
     #[test]

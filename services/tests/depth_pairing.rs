@@ -1,7 +1,8 @@
 //! The agent's own check of a capture's depth: the depth frame numbered like its
 //! colour frame is taken only when it was exposed within
 //! `DEPTH_PAIR_WINDOW_NS` of it and has its size (aligned to colour); a late
-//! one leaves the capture without depth, a misaligned one is an error.
+//! one leaves the capture without depth, a misaligned one is an error; a frame
+//! is taken by when it was exposed, not when it arrived.
 
 use std::time::Duration;
 
@@ -99,4 +100,19 @@ fn depth_not_aligned_to_colour_is_an_error() {
         e.contains("depth frame 1 is 128x48 but its colour frame is 64x48"),
         "{e}"
     );
+}
+
+/// Exposure lags the request: a real camera delivers a frame tens of
+/// milliseconds after exposing it, so the first frame to arrive after the arm
+/// stopped may show it moving. The agent goes by the exposure time.
+#[test]
+fn a_frame_exposed_before_the_arm_stopped_is_not_taken_though_it_arrives_after() {
+    let (mut camera, mut frames) = setup("exposure");
+    let stopped = b2b_frames::now_ns();
+    // Exposed 30 ms before the stop, arriving now; then one exposed after it.
+    camera.publish(1, stopped - 30_000_000, stopped - 29_600_000, (W, H));
+    camera.publish(2, stopped + 3_000_000, stopped + 3_400_000, (W, H));
+    let f = frames.frame_after(stopped, Duration::from_secs(5)).unwrap();
+    assert_eq!(f.number, 2);
+    assert!(f.depth.is_some());
 }

@@ -33,6 +33,10 @@ pub struct D435 {
     pub depth_unit_m: f64,
     /// Frames per second of each stream.
     pub fps: f64,
+    /// How the depth sensor measures what it sees ([`D435::exact`] from
+    /// [`D435::factory`]: quantised to the unit, no noise, dropouts or edge
+    /// losses); its unit is [`D435::depth_unit_m`].
+    pub depth_model: DepthModel,
 }
 
 impl D435 {
@@ -49,6 +53,21 @@ impl D435 {
             ),
             depth_unit_m: 0.001,
             fps: 30.0,
+            depth_model: D435::exact(0.001),
+        }
+    }
+
+    /// The sensor model without its noise, dropouts or edge losses: depth
+    /// quantised to `unit_m`, 0 where nothing was hit.
+    pub fn exact(unit_m: f64) -> DepthModel {
+        DepthModel {
+            subpixel: 0.0,
+            min_m: 0.0,
+            max_m: 65535.0 * unit_m,
+            edge_jump: f64::INFINITY,
+            dropout: 0.0,
+            unit_m,
+            ..DepthModel::default()
         }
     }
 }
@@ -76,16 +95,9 @@ pub fn render(
     let mut settings = settings.clone();
     settings.colour = true;
     let mut rng: crate::Rng = rand::SeedableRng::seed_from_u64(1);
-    // The sensor model without its noise, dropouts or edge losses: depth
-    // quantised to the unit, 0 where nothing was hit.
-    let exact = DepthModel {
-        subpixel: 0.0,
-        min_m: 0.0,
-        max_m: 65535.0 * camera.depth_unit_m,
-        edge_jump: f64::INFINITY,
-        dropout: 0.0,
+    let model = DepthModel {
         unit_m: camera.depth_unit_m,
-        ..DepthModel::default()
+        ..camera.depth_model
     };
     colour_from_world
         .iter()
@@ -94,7 +106,7 @@ pub fn render(
             let d = depth.render(&(camera.depth_from_colour * pose), geometry, &settings);
             Ok(D435Frame {
                 colour: expose_rgb(&c, &SensorNoise::none(), &mut rng),
-                depth: exact.measure(&d, &mut rng).data,
+                depth: model.measure(&d, &mut rng).data,
                 colour_depth_m: c.depth_m,
             })
         })

@@ -283,13 +283,17 @@ fn realsense(cli: &Cli) -> anyhow::Result<serde_json::Value> {
     let stop = stop_flag();
     let start = Instant::now();
     let mut n = 0u64;
-    // Waiting for the device dominates a call: no per-publish timing here.
+    // Per frameset, from its arrival to its last publish (not the wait).
+    let mut slowest = Duration::ZERO;
     'frames: while !stop.load(Ordering::SeqCst) && cli.frames.is_none_or(|max| n < max) {
-        for event in camera.publish_next(
+        let events = camera.publish_next(
             &mut colour.publisher,
             &mut depth.publisher,
             Duration::from_secs(5),
-        )? {
+        )?;
+        let work = camera.last_work();
+        slowest = slowest.max(work.colour + work.depth);
+        for event in events {
             match event {
                 Played::End => break 'frames,
                 Played::Colour { .. } => n += 1,
@@ -321,6 +325,7 @@ fn realsense(cli: &Cli) -> anyhow::Result<serde_json::Value> {
         "source": "realsense",
         "frames": n,
         "without_depth": camera.unpaired(),
+        "slowest_frameset_us": slowest.as_secs_f64() * 1e6,
         "seconds": start.elapsed().as_secs_f64(),
         "colour": Out::summary(Some(&colour)),
         "depth": Out::summary(Some(&depth)),
