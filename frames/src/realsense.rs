@@ -19,9 +19,10 @@
 //! an agent waiting for a frame exposed after its arm stopped gets one. Frame
 //! numbers keep increasing when a looping recording starts again.
 //!
-//! Frames are copied row by row from librealsense's buffer into the loaned
-//! samples (one audited `unsafe` reads that buffer, [`frame_bytes`]); depth is
-//! aligned on its way ([`RealSense::last_work`] times both).
+//! Colour is copied row by row from librealsense's buffer into its loaned
+//! sample (one audited `unsafe` reads that buffer, [`frame_bytes`]); depth is
+//! aligned from that buffer straight into its sample ([`RealSense::last_work`]
+//! times both).
 
 use std::ffi::CString;
 use std::path::PathBuf;
@@ -104,7 +105,8 @@ pub struct RealSense {
     pipeline: ActivePipeline,
     recorded: Recorded,
     colour_from_depth: Extrinsic,
-    /// One depth frame as librealsense delivers it, and aligned.
+    /// One depth frame copied from librealsense, and aligned: used only
+    /// when its buffer or the loaned sample cannot be read as `u16` in place.
     raw_depth: Vec<u16>,
     aligned: Vec<u16>,
     waiting: Option<Waiting>,
@@ -463,28 +465,54 @@ impl RealSense {
             )));
         }
         let rows = image_rows(d, 2, "depth")?;
-        self.raw_depth.clear();
-        for r in rows.iter() {
-            self.raw_depth
-                .extend(r.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])));
-        }
+        // Packed little-endian rows on a 2-byte boundary are aligned straight
+        // from librealsense's buffer; anything else is copied first.
+        let packed = (rows.stride == rows.width_bytes && cfg!(target_endian = "little"))
+            .then(|| {
+                bytemuck::try_cast_slice::<u8, u16>(&rows.bytes[..rows.width_bytes * rows.height])
+                    .ok()
+            })
+            .flatten();
+        let raw: &[u16] = match packed {
+            Some(px) => px,
+            None => {
+                self.raw_depth.clear();
+                for r in rows.iter() {
+                    self.raw_depth
+                        .extend(r.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])));
+                }
+                &self.raw_depth
+            }
+        };
         let h = FrameHeader {
             depth_unit_m: unit,
             ..self.depth.at(number, time_ns)
         };
-        self.aligned.resize(h.width as usize * h.height as usize, 0);
-        align_to_colour(
-            &self.raw_depth,
-            &self.recorded.depth,
-            &self.recorded.colour,
-            &self.colour_from_depth,
-            unit,
-            &mut self.aligned,
-        )?;
-        let aligned = &self.aligned;
-        depth.publish_with(&h, |buf| {
-            for (dst, z) in buf.chunks_exact_mut(2).zip(aligned) {
-                dst.copy_from_slice(&z.to_le_bytes());
+        let (recorded, extrinsic, aligned) =
+            (&self.recorded, &self.colour_from_depth, &mut self.aligned);
+        // Aligned straight into the loaned sample when it sits on a 2-byte
+        // boundary (little-endian, the header's byte order), else through a
+        // buffer.
+        depth.try_publish_with(&h, |buf| {
+            match bytemuck::try_cast_slice_mut::<u8, u16>(buf) {
+                Ok(out) if cfg!(target_endian = "little") => {
+                    align_to_colour(raw, &recorded.depth, &recorded.colour, extrinsic, unit, out)
+                }
+                _ => {
+                    aligned.resize(buf.len() / 2, 0);
+                    align_to_colour(
+                        raw,
+                        &recorded.depth,
+                        &recorded.colour,
+                        extrinsic,
+                        unit,
+                        aligned,
+                    )?;
+                    for (dst, z) in buf.chunks_exact_mut(2).zip(aligned.iter()) {
+                        dst.copy_from_slice(&z.to_le_bytes());
+                    }
+                    Ok(())
+                }
             }
         })?;
         self.last_work.depth += started.elapsed();
