@@ -3,6 +3,8 @@
 //! and the report, a corrupt, locked or newer database that costs the history but
 //! never the result, and readers beside a writer.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::Arc;
@@ -10,6 +12,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use b2b_protocol::CalibrationResult;
 use b2b_services::history::{self, DB_FILE, MOUNT_WARNING};
+use common::copy_dir;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 fn coordinator() -> Command {
@@ -86,19 +89,6 @@ fn number_before(text: &str, unit: &str) -> f64 {
         .rfind(|c: char| !(c.is_ascii_digit() || c == '.'))
         .map_or(0, |i| i + 1);
     head[start..].parse().unwrap()
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), target).unwrap();
-        }
-    }
 }
 
 /// Rewrites a robot's `T_base_flange` rows as `T_base_flange * inverse(D)`: to
