@@ -237,6 +237,76 @@ fn without_access_control_the_same_rogues_are_heard() {
     assert!(heard, "{}", o.coordinator);
 }
 
+/// The coordinator killed mid-run on the secured bus and started again with
+/// the same state folder: the samples it had journalled and those the agents
+/// published meanwhile (answered from their history when it asks, over mutual
+/// TLS) complete the run. The result equals the offline calibration, and each
+/// agent receives it.
+#[test]
+fn the_coordinator_killed_and_restarted_mid_run_under_tls_loses_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let pki = dir.join("pki");
+    let listen = format!("tls/127.0.0.1:{}", free_port());
+    pki_command(
+        &["init", "--robots", "robot1,robot2", "--listen", &listen],
+        &pki,
+    );
+    let coordinator = || {
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+            .arg(pki.join("coordinator.json5"))
+            .arg("--state-dir")
+            .arg(dir.join("coordinator-state"))
+            .arg("--out")
+            .arg(dir.join("RESULT.json"))
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let first = Killed(coordinator());
+    // Paced, so that captures are still coming when the coordinator dies.
+    let agents: Vec<(Child, &str)> = ["robot1", "robot2"]
+        .into_iter()
+        .map(|robot| {
+            let config = pki.join(format!("{robot}.json5"));
+            let state = dir.join(format!("agent-{robot}"));
+            (agent(robot, &dataset(), &config, &state, 300), robot)
+        })
+        .collect();
+    let journal = dir.join("coordinator-state/samples.jsonl");
+    let lines = || std::fs::read_to_string(&journal).map_or(0, |t| t.lines().count());
+    let start = Instant::now();
+    while lines() < 6 {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "nothing reached the coordinator over TLS"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    drop(first);
+    let kept = lines();
+    assert!(kept >= 6, "{kept} samples journalled");
+    std::thread::sleep(Duration::from_millis(500));
+    let (ok, printed) = exited(coordinator(), Duration::from_secs(180));
+    assert!(ok, "the restarted coordinator failed: {printed}");
+    // The restart had work left: samples arrived after it.
+    let total = lines();
+    eprintln!("journalled before the kill: {kept}; in all: {total}");
+    assert!(total > kept, "{kept} of {total} samples before the kill");
+    let live: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("RESULT.json")).unwrap()).unwrap();
+    let offline = offline_result_of(dir, &dataset(), "board");
+    assert_same(&live, &offline);
+    let t = offline.base1_from_base2.t;
+    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
+    for (a, robot) in agents {
+        let said = finished(a, robot, Duration::from_secs(60));
+        assert!(said.contains(&real), "{robot}: {said} (expected {real})");
+    }
+}
+
 fn run_with_rogues(access_control: bool) -> Outcome {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
