@@ -1027,7 +1027,7 @@ pub fn screen_observations(
 /// length = the image width (a 53° horizontal field of view, between a RealSense
 /// colour camera's 69° and a narrow lens), principal point at the centre, no
 /// distortion.
-fn guess_camera(width: u32, height: u32) -> Result<CameraModel, PipelineError> {
+pub fn guess_camera(width: u32, height: u32) -> Result<CameraModel, PipelineError> {
     let (w, h) = (f64::from(width), f64::from(height));
     CameraModel::new(width, height, [w, w, (w - 1.0) / 2.0, (h - 1.0) / 2.0], &[]).map_err(
         |source| PipelineError::CameraGuess {
@@ -1075,6 +1075,133 @@ pub fn initial_distortion_terms(views: usize) -> DistortionTerms {
         5..=7 => DistortionTerms::K1K2,
         _ => DistortionTerms::K1K2P1P2,
     }
+}
+
+/// The initial intrinsics fit to corners already detected (OpenCV's
+/// `calibrateCamera`, [`b2b_vision::calibrate_from_detections`], with
+/// [`initial_distortion_terms`]): views with too few corners are left out, and at
+/// most [`MAX_INITIAL_VIEWS`] are taken, spread over the views in order. `guess`
+/// gives the image size, and the start for a non-planar target.
+fn initial_intrinsics(
+    views: Vec<(String, BoardDetection)>,
+    guess: &CameraModel,
+) -> Result<(CameraModel, EstimatedIntrinsics), String> {
+    let fit_start = Instant::now();
+    let options = IntrinsicsOptions::default();
+    let usable: Vec<(String, BoardDetection)> = views
+        .into_iter()
+        .filter(|(_, det)| det.pixels.len() >= options.min_corners)
+        .collect();
+    let n = usable.len();
+    let views: Vec<(String, BoardDetection)> = if n > MAX_INITIAL_VIEWS {
+        (0..MAX_INITIAL_VIEWS)
+            .map(|k| usable[k * (n - 1) / (MAX_INITIAL_VIEWS - 1)].clone())
+            .collect()
+    } else {
+        usable
+    };
+    let terms = initial_distortion_terms(views.len());
+    let fit = b2b_vision::calibrate_from_detections(
+        &views,
+        guess.width,
+        guess.height,
+        &options,
+        terms,
+        Some(guess),
+    )
+    .map_err(|e| error_chain(&e))?;
+    let estimated = EstimatedIntrinsics {
+        terms,
+        images_used: fit.used(),
+        rms_px: fit.rms_px,
+        fit_ms: fit_start.elapsed().as_secs_f64() * 1e3,
+    };
+    Ok((fit.camera, estimated))
+}
+
+/// Fewest observations [`estimate_intrinsics_from_observations`] fits a camera
+/// to: Zhang's closed form needs three views of a plane, and a fourth and fifth
+/// keep one badly conditioned view from deciding the focal length.
+pub const MIN_VIEWS_FOR_INTRINSICS: usize = 5;
+
+/// A robot's observations when its camera gave no intrinsics: the camera fitted
+/// to the observations' own corners, as [`observe_robot`] fits it for a dataset
+/// without a `camera` block ([`initial_intrinsics`]), and every observation's pose
+/// fitted again with it (an observation whose pose then fails is rejected with
+/// the reason). The result is marked estimated, so that [`hand_eye`] and the
+/// base-to-base fits refine the intrinsics jointly and carry their uncertainty.
+///
+/// This is the live path: an agent whose frames carry no intrinsics detects with
+/// a provisional camera ([`guess_camera`], then its own estimates) and says so on
+/// every capture; the coordinator fits the camera again from all of them. The
+/// pixels and the target points (labelled already) are all it needs, so the
+/// provisional camera's poses do not matter. `obs.camera` gives the image size and
+/// the start for a non-planar target.
+pub fn estimate_intrinsics_from_observations(
+    obs: RobotObservations,
+) -> Result<RobotObservations, PipelineError> {
+    let robot = obs.robot.clone();
+    let estimation = |reason: String| PipelineError::IntrinsicsEstimation {
+        robot: robot.clone(),
+        reason,
+    };
+    if obs.observations.len() < MIN_VIEWS_FOR_INTRINSICS {
+        return Err(estimation(format!(
+            "{} captures see the target; estimating the intrinsics takes at least \
+             {MIN_VIEWS_FOR_INTRINSICS}",
+            obs.observations.len()
+        )));
+    }
+    let detection = |o: &Observation| BoardDetection {
+        target_points: o.board.target_points.clone(),
+        corner_ids: (0..o.board.pixels.len()).collect(),
+        pixels: o.board.pixels.clone(),
+        method: b2b_vision::checkerboard::CornerMethod::Published,
+        refined: true,
+    };
+    let views = obs
+        .observations
+        .iter()
+        .map(|o| (capture_name(o), detection(o)))
+        .collect();
+    let (camera, estimated) = initial_intrinsics(views, &obs.camera).map_err(estimation)?;
+    let mut observations = Vec::with_capacity(obs.observations.len());
+    let mut rejected = obs.rejected;
+    for o in obs.observations {
+        let det = detection(&o);
+        let pose = if det.target_points.iter().all(|p| p.z == 0.0) {
+            b2b_vision::board_pose(&det, &camera)
+        } else {
+            b2b_vision::multimarker_pose(&det.target_points, &det.pixels, &camera)
+                .map(|(pose, _)| pose)
+        };
+        match pose {
+            Ok(pose) => observations.push(Observation {
+                camera_from_target: pose.camera_from_target,
+                pnp_rms_px: pose.rms_px,
+                residuals_px: pose.residuals_px,
+                ..o
+            }),
+            Err(e) => rejected.push(RejectedCapture {
+                robot: robot.clone(),
+                image: o.image.clone(),
+                row: Some(o.row),
+                reason: format!(
+                    "no pose with the intrinsics estimated from the captures: {}",
+                    error_chain(&e)
+                ),
+            }),
+        }
+    }
+    rejected.sort_by_key(|r| r.row);
+    Ok(RobotObservations {
+        robot: obs.robot,
+        camera,
+        observations,
+        rejected,
+        detect_ms: obs.detect_ms + estimated.fit_ms,
+        estimated_intrinsics: Some(estimated),
+    })
 }
 
 /// [`observe_robot`] for a robot whose dataset gives no intrinsics: detect the
@@ -1166,11 +1293,8 @@ fn observe_uncalibrated(
             data.captures.len()
         )));
     };
-    let fit_start = Instant::now();
-    let options = IntrinsicsOptions::default();
     let usable: Vec<(String, BoardDetection)> = found
         .iter()
-        .filter(|(_, _, det)| det.pixels.len() >= options.min_corners)
         .map(|(cap, _, det)| {
             let name = cap
                 .image
@@ -1179,32 +1303,7 @@ fn observe_uncalibrated(
             (name, det.clone())
         })
         .collect();
-    // At most MAX_INITIAL_VIEWS, spread over the captures in order.
-    let n = usable.len();
-    let views: Vec<(String, BoardDetection)> = if n > MAX_INITIAL_VIEWS {
-        (0..MAX_INITIAL_VIEWS)
-            .map(|k| usable[k * (n - 1) / (MAX_INITIAL_VIEWS - 1)].clone())
-            .collect()
-    } else {
-        usable
-    };
-    let terms = initial_distortion_terms(views.len());
-    let fit = b2b_vision::calibrate_from_detections(
-        &views,
-        guess.width,
-        guess.height,
-        &options,
-        terms,
-        Some(&guess),
-    )
-    .map_err(|e| estimation(error_chain(&e)))?;
-    let camera = fit.camera.clone();
-    let estimated = EstimatedIntrinsics {
-        terms,
-        images_used: fit.used(),
-        rms_px: fit.rms_px,
-        fit_ms: fit_start.elapsed().as_secs_f64() * 1e3,
-    };
+    let (camera, estimated) = initial_intrinsics(usable, &guess).map_err(estimation)?;
     tracing::info!(
         robot,
         fx = camera.fx,
@@ -1214,7 +1313,7 @@ fn observe_uncalibrated(
         dist = ?&camera.dist[..5],
         images = estimated.images_used,
         rms_px = estimated.rms_px,
-        terms = terms.names(),
+        terms = estimated.terms.names(),
         "no intrinsics in dataset.json: initial camera fitted to the captures' corners"
     );
     let mut observations = Vec::new();
@@ -1653,7 +1752,7 @@ impl RobotCamera {
         let d = &c.dist;
         let origin = match (&self.estimated, self.refined) {
             (Some(e), refined) => format!(
-                "ESTIMATED from {} images (dataset.json has no intrinsics; initial fit of {} at {:.3} px{})",
+                "ESTIMATED from {} images (no intrinsics given; initial fit of {} at {:.3} px{})",
                 e.images_used,
                 e.terms.names(),
                 e.rms_px,
@@ -1761,19 +1860,9 @@ pub fn base_to_base_run(
     }
     let board_centre = target.centre();
     let robots: Vec<&RobotObservations> = observed.iter().collect();
-    let (mut result, cameras) = joint_bases(&robots, &board_centre, options, method)?;
+    let (mut result, cameras) =
+        bases_and_cameras_from_observations(&robots, &board_centre, options, method)?;
     result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
-    let refined = options_for(options, &robots).refine_intrinsics;
-    let cameras = robots
-        .iter()
-        .zip(cameras)
-        .map(|(o, camera)| RobotCamera {
-            robot: o.robot.clone(),
-            camera,
-            refined,
-            estimated: o.estimated_intrinsics.clone(),
-        })
-        .collect::<Vec<_>>();
     for c in &cameras {
         if c.estimated.is_some() {
             tracing::info!("{}", c.describe());
@@ -1812,6 +1901,29 @@ pub fn base_to_base_from_observations_with(
     method: B2bMethod,
 ) -> Result<CalibrationResult, PipelineError> {
     joint_bases(robots, board_centre, options, method).map(|(r, _)| r)
+}
+
+/// [`base_to_base_from_observations_with`] with every robot's camera as the
+/// joint fit left it (and whether it was estimated from the captures).
+pub fn bases_and_cameras_from_observations(
+    robots: &[&RobotObservations],
+    board_centre: &Point3<f64>,
+    options: &RefineOptions,
+    method: B2bMethod,
+) -> Result<(CalibrationResult, Vec<RobotCamera>), PipelineError> {
+    let (result, cameras) = joint_bases(robots, board_centre, options, method)?;
+    let refined = options_for(options, robots).refine_intrinsics;
+    let cameras = robots
+        .iter()
+        .zip(cameras)
+        .map(|(o, camera)| RobotCamera {
+            robot: o.robot.clone(),
+            camera,
+            refined,
+            estimated: o.estimated_intrinsics.clone(),
+        })
+        .collect();
+    Ok((result, cameras))
 }
 
 /// Every robot's base in the first robot's, as one problem over all their

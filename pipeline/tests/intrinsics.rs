@@ -509,3 +509,76 @@ fn multimarker_base_to_base_without_intrinsics() {
         assert!(dt < tol_mm * 1e-3, "{name}: {dt} m");
     }
 }
+
+/// The live path: observations whose poses were fitted with a guessed camera
+/// (as an agent publishes them when its camera gives no intrinsics) get the
+/// camera fitted to their corners and their poses fitted again with it; the
+/// camera is then as good as the one the offline path estimates from the
+/// images, and a hand-eye from it matches. Too few views is a named error.
+#[test]
+fn observations_made_with_a_guessed_camera_get_their_camera_estimated() {
+    let dir = bundled("sim-checkerboard-2x12");
+    let ds = Dataset::load(&dir).unwrap();
+    let truth = load_ground_truth(&dir).unwrap().unwrap();
+    let given = observe_robot(&ds, "robot1").unwrap();
+    // What an agent with a guessed camera would have published: the same
+    // corners, the poses from the guess (focal length = the image width).
+    let guess = b2b_pipeline::guess_camera(given.camera.width, given.camera.height).unwrap();
+    let mut guessed = given.clone();
+    guessed.camera = guess.clone();
+    for o in &mut guessed.observations {
+        let det = b2b_vision::BoardDetection {
+            target_points: o.board.target_points.clone(),
+            corner_ids: (0..o.board.pixels.len()).collect(),
+            pixels: o.board.pixels.clone(),
+            method: b2b_vision::checkerboard::CornerMethod::Published,
+            refined: true,
+        };
+        o.camera_from_target = b2b_vision::board_pose(&det, &guess)
+            .unwrap()
+            .camera_from_target;
+    }
+    let fitted = b2b_pipeline::estimate_intrinsics_from_observations(guessed.clone()).unwrap();
+    let e = fitted.estimated_intrinsics.as_ref().unwrap();
+    eprintln!(
+        "guess fx {:.1}; fitted to {} views at {:.3} px: {} (given {})",
+        guess.fx,
+        e.images_used,
+        e.rms_px,
+        show(&fitted.camera),
+        show(&given.camera)
+    );
+    assert_eq!(fitted.observations.len(), given.observations.len());
+    assert!((fitted.camera.fx / given.camera.fx - 1.0).abs() < 0.005);
+    for (f, g) in fitted.observations.iter().zip(&given.observations) {
+        let (dt, _) = pose_distance(&f.camera_from_target, &g.camera_from_target);
+        assert!(
+            dt < 5e-3,
+            "row {}: pose {dt} m from the given camera's",
+            f.row
+        );
+    }
+    let he = hand_eye(&fitted, HandEyeChoice::Refined, &RefineOptions::default()).unwrap();
+    let (dt, dr) = pose_distance(
+        &he.estimate.flange_from_camera,
+        &truth.flange_from_camera["robot1"],
+    );
+    eprintln!(
+        "hand-eye {:.3} mm, {:.4} deg from the truth; refined camera {}",
+        dt * 1e3,
+        dr.to_degrees(),
+        show(&he.estimate.camera)
+    );
+    assert!(dt < 1e-3, "hand-eye {dt} m from the truth");
+
+    let mut few = guessed;
+    few.observations
+        .truncate(b2b_pipeline::MIN_VIEWS_FOR_INTRINSICS - 1);
+    let err = b2b_pipeline::estimate_intrinsics_from_observations(few)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("robot1") && err.contains("at least 5"),
+        "{err}"
+    );
+}

@@ -139,6 +139,12 @@ pub struct Intrinsics {
     pub cx: f64,
     pub cy: f64,
     pub dist: Vec<f64>,
+    /// The camera gave no intrinsics: these are the agent's provisional estimate
+    /// from its captures so far (a guess before the first fit), used for its own
+    /// poses only. The coordinator fits the camera again from every capture's
+    /// corners and refines it with the hand-eyes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub estimated: bool,
 }
 
 impl Validate for Intrinsics {
@@ -449,6 +455,7 @@ mod tests {
                 cx: 320.0,
                 cy: 240.0,
                 dist: vec![0.0; 5],
+                estimated: false,
             },
             observation: Some(BoardObservation {
                 target_points: vec![[0.0; 3]; 4],

@@ -138,6 +138,7 @@ fn richer_inputs_add_plots_and_the_output_is_deterministic() {
             cx: 320.0,
             cy: 240.0,
             dist: vec![],
+            estimated: false,
         },
         observation: Some(BoardObservation {
             target_points: vec![[0.0; 3]; 4],

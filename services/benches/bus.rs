@@ -72,6 +72,7 @@ fn pose_message() -> Vec<u8> {
             cx: 640.0,
             cy: 360.0,
             dist: vec![0.0; 5],
+            estimated: false,
         },
         observation: None,
         rejected: Some("latency probe".into()),

@@ -138,6 +138,9 @@ pub struct SourceCapture {
     pub base_from_flange: nalgebra::Isometry3<f64>,
     pub controller_time_s: Option<f64>,
     pub camera: b2b_calib::camera::CameraModel,
+    /// The camera gave no intrinsics: `camera` is the agent's provisional
+    /// estimate ([`b2b_protocol::messages::Intrinsics::estimated`]).
+    pub intrinsics_estimated: bool,
     pub observed: Result<Observation, b2b_protocol::RejectedCapture>,
     /// The grey image, when the source has it in memory (for the recording).
     pub pixels: Option<Vec<u8>>,
@@ -165,6 +168,9 @@ pub trait CaptureSource {
     fn summary(&self) -> Option<String> {
         None
     }
+    /// The agent's newest estimate of a camera that gave no intrinsics, for the
+    /// source's next detections (sources whose camera has intrinsics ignore it).
+    fn use_camera(&mut self, _camera: &b2b_calib::camera::CameraModel) {}
 }
 
 /// A `b2b-dataset/1` folder's captures of one robot.
@@ -258,6 +264,7 @@ impl CaptureSource for ReplaySource {
             base_from_flange: cap.base_from_flange,
             controller_time_s: None,
             camera: self.setup.camera.clone(),
+            intrinsics_estimated: false,
             observed: observe_capture(&self.ds, &self.setup, cap),
             pixels: None,
             features,
@@ -276,6 +283,7 @@ pub fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
         cx: c.cx,
         cy: c.cy,
         dist: c.dist[..5].to_vec(),
+        estimated: false,
     }
 }
 
@@ -347,6 +355,21 @@ pub fn run_agent_on(
         eprintln!("{robot}: {line}");
     }
     if let Some(o) = &captures.observations {
+        if let Some(e) = &o.estimated_intrinsics {
+            let c = captures.camera.as_ref().unwrap_or(&o.camera);
+            eprintln!(
+                "{robot}: camera estimated (the camera gave no intrinsics): fx {:.2} fy {:.2} \
+                 cx {:.2} cy {:.2}, fitted to {} of {} captures at {:.3} px and refined with \
+                 the hand-eye; the coordinator fits it again from every capture",
+                c.fx,
+                c.fy,
+                c.cx,
+                c.cy,
+                e.images_used,
+                o.observations.len(),
+                e.rms_px
+            );
+        }
         for r in &o.rejected {
             eprintln!(
                 "{robot}: rejected {} (row {}): {}",
@@ -530,7 +553,10 @@ fn capture_message(cap: &SourceCapture) -> Capture {
         controller_time_s: cap.controller_time_s,
         image: cap.image.clone(),
         base_from_flange: Pose::from_isometry(&cap.base_from_flange),
-        camera: intrinsics(&cap.camera),
+        camera: Intrinsics {
+            estimated: cap.intrinsics_estimated,
+            ..intrinsics(&cap.camera)
+        },
         observation,
         rejected,
         base_from_target: None,
@@ -578,6 +604,8 @@ const ENOUGH_CAPTURES: usize = 10;
 struct CaptureLoop {
     observations: Option<RobotObservations>,
     flange_from_camera: Option<nalgebra::Isometry3<f64>>,
+    /// The newest estimate of a camera that gave no intrinsics.
+    camera: Option<b2b_calib::camera::CameraModel>,
     progress: Progress,
     published: u64,
 }
@@ -599,7 +627,10 @@ impl CaptureLoop {
             let Some(cap) = source.next(&self.progress, stop)? else {
                 return Ok(());
             };
-            self.capture(link, opts, &cap, bar)?;
+            if let Some(camera) = self.capture(link, opts, &cap, bar)? {
+                source.use_camera(&camera);
+                self.camera = Some(camera);
+            }
             bar.inc(1);
             let spent = started.elapsed();
             if spent < opts.pace {
@@ -609,13 +640,16 @@ impl CaptureLoop {
     }
 
     /// One capture: published, recorded, folded into the hand-eye and the status.
+    /// When the camera gave no intrinsics, returns the agent's newest estimate of
+    /// them (fitted to the corners of every capture so far, then refined with
+    /// the hand-eye) for the source's next detections.
     fn capture(
         &mut self,
         link: &AgentLink,
         opts: &AgentOptions,
         cap: &SourceCapture,
         bar: &indicatif::ProgressBar,
-    ) -> anyhow::Result<()> {
+    ) -> anyhow::Result<Option<b2b_calib::camera::CameraModel>> {
         let robot = &opts.robot;
         let obs = self.observations.get_or_insert_with(|| RobotObservations {
             robot: robot.clone(),
@@ -644,6 +678,23 @@ impl CaptureLoop {
         link.publish_capture(msg)?;
         self.published += 1;
 
+        // A camera without intrinsics: fitted again to every capture's corners
+        // once there are enough, before any hand-eye (one from a guessed camera
+        // would put the board centimetres off).
+        let mut camera = None;
+        if cap.intrinsics_estimated
+            && cap.observed.is_ok()
+            && obs.observations.len() >= b2b_pipeline::MIN_VIEWS_FOR_INTRINSICS
+        {
+            match b2b_pipeline::estimate_intrinsics_from_observations(obs.clone()) {
+                Ok(fitted) => {
+                    *obs = fitted;
+                    camera = Some(obs.camera.clone());
+                }
+                Err(e) => tracing::warn!("{robot}: {}", error_chain(&e)),
+            }
+        }
+        let intrinsics_known = !cap.intrinsics_estimated || obs.estimated_intrinsics.is_some();
         // A hand-eye as soon as the motions allow one.
         let poses: Vec<_> = obs
             .observations
@@ -652,8 +703,12 @@ impl CaptureLoop {
             .collect();
         let motion = check_motions(&poses, &MotionThresholds::default());
         if motion.is_ok()
+            && intrinsics_known
             && let Ok(he) = hand_eye(obs, HandEyeChoice::Refined, &opts.refine)
         {
+            if cap.intrinsics_estimated {
+                camera = Some(he.estimate.camera.clone());
+            }
             self.flange_from_camera = Some(he.estimate.flange_from_camera);
             let update = HandEyeUpdate {
                 flange_from_camera: he.result.flange_from_camera,
@@ -704,7 +759,8 @@ impl CaptureLoop {
                 cap.index, r.reason
             ));
         }
-        link.status.publish()
+        link.status.publish()?;
+        Ok(camera)
     }
 }
 

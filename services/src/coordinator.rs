@@ -123,12 +123,21 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
     // The one board centre: the target's, as the agents report it.
     let names: Vec<&str> = ids.iter().map(String::as_str).collect();
     let centre = store.target_centre(&names)?;
-    Ok(b2b_pipeline::base_to_base_from_observations_with(
+    let (mut result, cameras) = b2b_pipeline::bases_and_cameras_from_observations(
         &robots,
         &centre,
         &opts.refine,
         opts.method,
-    )?)
+    )?;
+    // A camera that gave no intrinsics was calibrated from these same captures:
+    // the operator sees that, and with what.
+    for c in cameras.iter().filter(|c| c.estimated.is_some()) {
+        result.warnings.push(format!(
+            "{} (the camera published none; the result's covariance includes their uncertainty)",
+            c.describe()
+        ));
+    }
+    Ok(result)
 }
 
 /// The RGB-D method over the agents' feature sets, with each robot's hand-eye

@@ -34,6 +34,10 @@ pub struct LiveFrame {
     /// Start of the exposure, ns since the Unix epoch.
     pub timestamp_ns: u64,
     pub camera: CameraModel,
+    /// The camera process published no intrinsics (a camera without a factory
+    /// calibration): `camera` is then a provisional guess from the image size
+    /// until the agent has estimated them ([`LiveSource`] puts its estimate in).
+    pub intrinsics_given: bool,
     pub grey: Vec<u8>,
     /// The aligned depth image of the same frame number and its unit (m), when the
     /// source has a depth stream and it arrived.
@@ -196,6 +200,11 @@ pub struct LiveSource {
     guard: SafetyGuard,
     target: LiveTarget,
     camera: Option<CameraModel>,
+    /// The camera gives no intrinsics (known from the first frame).
+    camera_estimated: bool,
+    /// The agent's newest estimate of them ([`CaptureSource::use_camera`]),
+    /// which replaces the frames' guess.
+    estimated_camera: Option<CameraModel>,
     plan: Option<Plan>,
     captured: u64,
     /// The capture policy's decisions (sans I/O).
@@ -244,6 +253,8 @@ impl LiveSource {
             guard,
             target,
             camera: None,
+            camera_estimated: false,
+            estimated_camera: None,
             plan: None,
             captured: 0,
             routine,
@@ -288,8 +299,23 @@ impl LiveSource {
         self.still_through(frame)
     }
 
-    /// `frame` with the joints it was taken at, the arm checked still after it.
-    fn still_through(&self, frame: LiveFrame) -> anyhow::Result<(LiveFrame, Joints, f64)> {
+    /// `frame` with the joints it was taken at, the arm checked still after it
+    /// (and the agent's estimate of the camera when the frame carries none).
+    fn still_through(&self, mut frame: LiveFrame) -> anyhow::Result<(LiveFrame, Joints, f64)> {
+        if !frame.intrinsics_given
+            && let Some(c) = &self.estimated_camera
+        {
+            anyhow::ensure!(
+                (c.width, c.height) == (frame.camera.width, frame.camera.height),
+                "frame {} is {}x{}, the camera was {}x{} when its intrinsics were estimated",
+                frame.number,
+                frame.camera.width,
+                frame.camera.height,
+                c.width,
+                c.height
+            );
+            frame.camera = c.clone();
+        }
         anyhow::ensure!(
             self.fri
                 .is_still(self.cfg.still_window, self.cfg.still_tol_rad),
@@ -339,6 +365,16 @@ impl LiveSource {
     fn make_plan(&mut self, count: usize, first_view: bool, phase: f64) -> anyhow::Result<()> {
         let (frame, q, _) = self.still_frame()?;
         self.camera = Some(frame.camera.clone());
+        self.camera_estimated = !frame.intrinsics_given;
+        if self.camera_estimated && self.estimated_camera.is_none() {
+            tracing::warn!(
+                "{}: the camera gives no intrinsics: planning and detecting with a guess \
+                 (focal length {:.0} px) until they are estimated from {} captures",
+                self.cfg.robot,
+                frame.camera.fx,
+                b2b_pipeline::MIN_VIEWS_FOR_INTRINSICS
+            );
+        }
         let base_from_flange = self.arm.fk(&q);
         if first_view {
             let expected = self.expected_view(&base_from_flange, None);
@@ -537,6 +573,7 @@ impl LiveSource {
                         base_from_flange: self.arm.fk(&self.measured()?),
                         controller_time_s: None,
                         camera: self.camera.clone().context("no camera intrinsics yet")?,
+                        intrinsics_estimated: self.camera_estimated,
                         observed: Err(self.reject(row, reason)),
                         pixels: None,
                         features: None,
@@ -600,6 +637,7 @@ impl LiveSource {
             base_from_flange,
             controller_time_s: Some(controller_t),
             camera,
+            intrinsics_estimated: !frame.intrinsics_given,
             observed,
             pixels: Some(frame.grey.clone()),
             features: None,
@@ -719,6 +757,13 @@ impl CaptureSource for LiveSource {
         self.captured += 1;
         self.timings.captures += 1;
         Ok(Some(cap))
+    }
+
+    fn use_camera(&mut self, camera: &CameraModel) {
+        if self.camera_estimated {
+            self.estimated_camera = Some(camera.clone());
+            self.camera = Some(camera.clone());
+        }
     }
 
     fn summary(&self) -> Option<String> {
@@ -885,12 +930,21 @@ pub const DEPTH_PAIR_WINDOW_NS: u64 = 20_000_000;
 fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
     let h = *frame.header();
     let kind = h.stream_kind()?;
+    // A camera without intrinsics publishes zero focal lengths; anything else
+    // that is not a positive focal length is a broken header.
+    let intrinsics_given = !(h.fx == 0.0 && h.fy == 0.0);
     anyhow::ensure!(
-        h.fx > 0.0 && h.fy > 0.0,
-        "frame {} carries no intrinsics",
-        h.frame_number
+        !intrinsics_given || (h.fx > 0.0 && h.fy > 0.0),
+        "frame {} carries focal lengths {} and {}: neither positive nor both zero (none given)",
+        h.frame_number,
+        h.fx,
+        h.fy
     );
-    let camera = CameraModel::new(h.width, h.height, [h.fx, h.fy, h.cx, h.cy], &h.dist)?;
+    let camera = if intrinsics_given {
+        CameraModel::new(h.width, h.height, [h.fx, h.fy, h.cx, h.cy], &h.dist)?
+    } else {
+        b2b_pipeline::guess_camera(h.width, h.height)?
+    };
     let mut grey = Vec::with_capacity(h.width as usize * h.height as usize);
     for y in 0..h.height {
         let row = frame.row(y).context("short frame")?;
@@ -907,6 +961,7 @@ fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
         number: h.frame_number,
         timestamp_ns: h.timestamp_ns,
         camera,
+        intrinsics_given,
         grey,
         depth: None,
     })

@@ -450,12 +450,33 @@ impl Store {
             .map_err(|e| anyhow::anyhow!("robot '{robot}': camera: {e}"))?;
         let mut observations = Vec::new();
         for (index, cap) in &caps {
-            if cap.camera != *c {
+            // A camera without intrinsics: each capture carries the agent's
+            // estimate of its time; all of them are fitted again below.
+            let same = if c.estimated {
+                cap.camera.estimated && (cap.camera.width, cap.camera.height) == (c.width, c.height)
+            } else {
+                cap.camera == *c
+            };
+            if !same {
                 rejected.push(RejectedCapture {
                     robot: robot.to_owned(),
                     image: cap.image.clone(),
                     row: Some(row_of(*index)),
-                    reason: "camera intrinsics differ from the robot's first capture".into(),
+                    reason: if c.estimated != cap.camera.estimated {
+                        format!(
+                            "the camera gave {} intrinsics on this capture and {} on the robot's \
+                             first: one camera cannot be both",
+                            if cap.camera.estimated { "no" } else { "its" },
+                            if c.estimated { "none" } else { "its own" },
+                        )
+                    } else if c.estimated {
+                        format!(
+                            "image size {}x{}, the robot's first capture's is {}x{}",
+                            cap.camera.width, cap.camera.height, c.width, c.height
+                        )
+                    } else {
+                        "camera intrinsics differ from the robot's first capture".into()
+                    },
                 });
                 continue;
             }
@@ -481,14 +502,31 @@ impl Store {
                 }),
             }
         }
-        Ok(RobotObservations {
+        let obs = RobotObservations {
             robot: robot.to_owned(),
             camera,
             observations,
             rejected,
             detect_ms: 0.0,
             estimated_intrinsics: None,
-        })
+        };
+        if !c.estimated {
+            return Ok(obs);
+        }
+        let obs = b2b_pipeline::estimate_intrinsics_from_observations(obs)?;
+        if let Some(e) = &obs.estimated_intrinsics {
+            tracing::info!(
+                robot,
+                fx = obs.camera.fx,
+                fy = obs.camera.fy,
+                cx = obs.camera.cx,
+                cy = obs.camera.cy,
+                images = e.images_used,
+                rms_px = e.rms_px,
+                "the camera gave no intrinsics: fitted to the published corners"
+            );
+        }
+        Ok(obs)
     }
 
     /// A robot's published feature sets as the RGB-D method takes them; captures
@@ -546,6 +584,7 @@ mod tests {
                 cx: 320.0,
                 cy: 240.0,
                 dist: vec![],
+                estimated: false,
             },
             observation: Some(BoardObservation {
                 target_points: vec![[0.0; 3]; 4],
@@ -841,5 +880,43 @@ mod tests {
         .unwrap();
         assert!(!s.complete(Some(&ids), 2));
         assert_eq!(s.missing(), ["robot2"]);
+    }
+
+    /// A camera that gave intrinsics on some captures and none on others is two
+    /// cameras: the captures unlike the first are rejected with the reason, and
+    /// too few estimated-camera captures to fit one is a named error.
+    #[test]
+    fn estimated_and_given_intrinsics_do_not_mix() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        let estimated = |index| {
+            let mut c = capture(index);
+            c.camera.estimated = true;
+            c
+        };
+        for (seq, sample) in [(1, estimated(0)), (2, capture(1)), (3, estimated(2))] {
+            s.accept(Sample::Capture(Envelope::new("robot1", seq, sample)))
+                .unwrap();
+        }
+        let err = format!("{:#}", s.observations("robot1").unwrap_err());
+        assert!(
+            err.contains("robot1") && err.contains("at least 5"),
+            "{err}"
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        for (seq, sample) in [(1, capture(0)), (2, estimated(1))] {
+            s.accept(Sample::Capture(Envelope::new("robot1", seq, sample)))
+                .unwrap();
+        }
+        let o = s.observations("robot1").unwrap();
+        assert_eq!(o.observations.len(), 1);
+        assert!(
+            o.rejected[0]
+                .reason
+                .contains("gave no intrinsics on this capture"),
+            "{:?}",
+            o.rejected
+        );
     }
 }

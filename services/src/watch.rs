@@ -448,6 +448,7 @@ mod tests {
                 cx: 320.0,
                 cy: 240.0,
                 dist: vec![0.0; 5],
+                estimated: false,
             },
             observation: seen.then(|| BoardObservation {
                 target_points: vec![[0.0; 3]; 4],

@@ -50,6 +50,7 @@ fn capture() -> Envelope<Capture> {
                 cx: 640.0,
                 cy: 360.0,
                 dist: vec![0.0; 5],
+                estimated: false,
             },
             observation: Some(BoardObservation {
                 target_points: points,

@@ -31,6 +31,9 @@ pub struct RenderedFrame {
     /// Start of the exposure, ns since the Unix epoch (host clock).
     pub timestamp_ns: u64,
     pub camera: CameraModel,
+    /// The camera publishes `camera` as its intrinsics; `false`: it publishes
+    /// none (zeros), as a camera without a factory calibration.
+    pub intrinsics_given: bool,
     pub grey: GreyImage,
     pub depth: Option<DepthImage>,
 }
@@ -190,6 +193,7 @@ pub fn run_cart(
                 number,
                 timestamp_ns,
                 camera: camera.clone(),
+                intrinsics_given: spec.reports_intrinsics,
                 grey,
                 depth,
             })?;
@@ -247,9 +251,13 @@ fn header(kind: b2b_frames::StreamKind, frame: &RenderedFrame) -> b2b_frames::Fr
     for (d, v) in dist.iter_mut().zip(&c.dist) {
         *d = *v;
     }
-    b2b_frames::FrameHeader::new(kind, c.width, c.height)
-        .with_intrinsics(c.fx, c.fy, c.cx, c.cy, dist)
-        .at(frame.number, frame.timestamp_ns)
+    let h = b2b_frames::FrameHeader::new(kind, c.width, c.height);
+    let h = if frame.intrinsics_given {
+        h.with_intrinsics(c.fx, c.fy, c.cx, c.cy, dist)
+    } else {
+        h
+    };
+    h.at(frame.number, frame.timestamp_ns)
 }
 
 impl FrameSink for IceoryxSink {

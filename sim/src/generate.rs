@@ -343,7 +343,7 @@ pub fn generate_scene(
         let c = spec.reported_camera.as_ref().unwrap_or(&spec.camera);
         robots_manifest.push(RobotManifest {
             id: spec.id.clone(),
-            camera: Some(CameraIntrinsics {
+            camera: spec.reports_intrinsics.then(|| CameraIntrinsics {
                 width: c.width,
                 height: c.height,
                 fx: c.fx,

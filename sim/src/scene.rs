@@ -188,6 +188,11 @@ pub struct RobotSpec {
     /// `camera`. Absent: the camera reports the truth.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reported_camera: Option<CameraSpec>,
+    /// `false`: the camera reports no intrinsics at all (a camera without a
+    /// factory calibration): the cart publishes frames without them and `sim
+    /// generate` leaves the robot's `camera` block out of `dataset.json`.
+    #[serde(default = "reports_intrinsics", skip_serializing_if = "is_true")]
+    pub reports_intrinsics: bool,
     /// `T_flange_camera` (camera optical frame: x right, y down, z forward).
     pub flange_from_camera: PoseSpec,
     #[serde(default)]
@@ -220,6 +225,14 @@ pub struct ViewpointSpec {
     /// Every inner corner must be at least this far inside the image, px.
     #[serde(default = "default_margin_px")]
     pub min_margin_px: f64,
+}
+
+fn reports_intrinsics() -> bool {
+    true
+}
+
+fn is_true(v: &bool) -> bool {
+    *v
 }
 
 fn default_distance() -> [f64; 2] {

@@ -164,6 +164,9 @@ pub enum CornerMethod {
     /// refined by `cornerSubPix` ([`crate::markers::detect_aruco_grid`],
     /// [`crate::markers::detect_marker`]).
     ArucoMarkers,
+    /// Not a detector here: corners another process detected and published (a
+    /// live agent's observation, refitted at the coordinator).
+    Published,
 }
 
 /// The detectors [`detect_checkerboard`] tries, in order (see the crate docs for the
@@ -292,9 +295,9 @@ pub fn find_corners(
     let size = Size::new(spec.cols as i32, spec.rows as i32);
     let mut corners = Vector::<Point2f>::new();
     match method {
-        CornerMethod::Charuco | CornerMethod::ArucoMarkers => {
+        CornerMethod::Charuco | CornerMethod::ArucoMarkers | CornerMethod::Published => {
             return Err(VisionError::InvalidSpec(format!(
-                "{method:?} is a marker detector, not a checkerboard detector"
+                "{method:?} is not a checkerboard detector"
             )));
         }
         CornerMethod::SectorBased { flags } => {

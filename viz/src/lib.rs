@@ -992,6 +992,7 @@ mod tests {
             cx: 320.0,
             cy: 240.0,
             dist: vec![0.0; 5],
+            estimated: false,
         }
     }
 

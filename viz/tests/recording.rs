@@ -22,6 +22,7 @@ fn camera() -> Intrinsics {
         cx: 32.0,
         cy: 24.0,
         dist: vec![0.01, -0.02, 0.0, 0.0, 0.0],
+        estimated: false,
     }
 }
 
