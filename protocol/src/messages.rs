@@ -50,6 +50,48 @@ pub fn coordinator_alive_key() -> String {
     format!("{KEY_ROOT}/coordinator/alive")
 }
 
+/// The key the coordinator announces its run's session on ([`SessionAnnouncement`]).
+pub fn session_key() -> String {
+    format!("{KEY_ROOT}/coordinator/session")
+}
+
+/// Length of a session id: 128 random bits in lowercase hex.
+pub const SESSION_ID_LEN: usize = 32;
+
+/// A session id is [`SESSION_ID_LEN`] lowercase hex digits.
+pub fn validate_session_id(id: &str) -> Result<(), ProtocolError> {
+    if id.len() != SESSION_ID_LEN
+        || !id
+            .chars()
+            .all(|c| c.is_ascii_digit() || ('a'..='f').contains(&c))
+    {
+        return Err(ProtocolError::BadField {
+            field: "session".into(),
+            reason: format!(
+                "'{}' is not a session id ({SESSION_ID_LEN} lowercase hex digits)",
+                b2b_errors::excerpt(id)
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The session of a `coordinator run` (`b2b/coordinator/session`, announced
+/// twice a second): agents echo it in every message's envelope from then on,
+/// and accept a result only from the coordinator and with the session they
+/// echo, so a result of another run (a stale coordinator, a replay) is never
+/// taken for theirs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionAnnouncement {
+    pub session: String,
+}
+
+impl Validate for SessionAnnouncement {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        validate_session_id(&self.session)
+    }
+}
+
 /// Robot ids go into key expressions: letters, digits, `-` and `_` only.
 pub fn validate_robot_id(id: &str) -> Result<(), ProtocolError> {
     if id.is_empty()
@@ -73,6 +115,11 @@ pub struct Envelope<T> {
     pub robot: String,
     /// Per agent, strictly increasing across restarts.
     pub seq: u64,
+    /// The `coordinator run` session the sender is part of: an agent's echo of
+    /// the announced one, the coordinator's own on its result. None before an
+    /// agent has heard one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub session: Option<String>,
     pub body: T,
 }
 
@@ -88,8 +135,15 @@ impl<T: Validate> Envelope<T> {
             schema: SCHEMA_VERSION,
             robot: robot.to_owned(),
             seq,
+            session: None,
             body,
         }
+    }
+
+    /// The same message in `session`.
+    pub fn in_session(mut self, session: Option<&str>) -> Self {
+        self.session = session.map(str::to_owned);
+        self
     }
 
     /// Checks the version, that the sender is the robot the key names, and the body.
@@ -104,6 +158,9 @@ impl<T: Validate> Envelope<T> {
             });
         }
         validate_robot_id(&self.robot)?;
+        if let Some(s) = &self.session {
+            validate_session_id(s)?;
+        }
         if self.robot != robot_in_key {
             return Err(ProtocolError::BadField {
                 field: "robot".into(),

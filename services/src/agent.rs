@@ -26,7 +26,7 @@ use b2b_pipeline::{
 };
 use b2b_protocol::messages::{
     AgentState, AgentStatus, BoardObservation, Capture, Envelope, FeatureSet, HandEyeUpdate,
-    Intrinsics, agent_key, result_key,
+    Intrinsics, SessionAnnouncement, agent_key, result_key, session_key,
 };
 use b2b_protocol::{CalibrationResult, Pose};
 
@@ -392,7 +392,12 @@ pub fn run_agent_on(
     link.status.publish()?;
     run?;
     // Stay reachable (history, heartbeat) until the coordinator answers.
-    Ok(wait_for_result(&*results, opts.wait_result, stop))
+    Ok(wait_for_result(
+        &*results,
+        &link.status,
+        opts.wait_result,
+        stop,
+    ))
 }
 
 /// The status message of one agent, published on every change and as a heartbeat.
@@ -402,6 +407,10 @@ struct StatusLink {
     robot: String,
     seq: Arc<Sequence>,
     status: Arc<Mutex<AgentStatus>>,
+    /// The coordinator's session, as last announced: echoed in every message.
+    session: Arc<Mutex<Option<String>>>,
+    /// The coordinator's session announcements.
+    sessions: Arc<Mutex<Box<dyn bus::Inbox>>>,
 }
 
 impl StatusLink {
@@ -424,15 +433,63 @@ impl StatusLink {
     }
 
     /// Publishes a message of this agent under `b2b/agent/{robot}/{topic}`,
-    /// with the next sequence number.
+    /// with the next sequence number, in the coordinator's session.
     fn send<T: serde::Serialize + b2b_protocol::messages::Validate>(
         &self,
         topic: &str,
         body: T,
     ) -> anyhow::Result<()> {
         let key = agent_key(&self.robot, topic);
-        let envelope = Envelope::new(&self.robot, self.seq.take()?, body);
-        Ok(bus::publish(&*self.bus, &key, &envelope)?)
+        Ok(bus::publish(&*self.bus, &key, &self.envelope(body)?)?)
+    }
+
+    /// `body` with the next sequence number, in the session echoed now.
+    fn envelope<T: b2b_protocol::messages::Validate>(
+        &self,
+        body: T,
+    ) -> anyhow::Result<Envelope<T>> {
+        Ok(Envelope::new(&self.robot, self.seq.take()?, body)
+            .in_session(self.session()?.as_deref()))
+    }
+
+    /// The session echoed now.
+    fn session(&self) -> anyhow::Result<Option<String>> {
+        Ok(self
+            .session
+            .lock()
+            .map_err(|_| anyhow::anyhow!("session lock poisoned"))?
+            .clone())
+    }
+
+    /// Takes the coordinator's newest session announcement, if one arrived.
+    fn hear_session(&self) {
+        let Ok(inbox) = self.sessions.lock() else {
+            return;
+        };
+        loop {
+            match inbox.recv_timeout(Duration::ZERO) {
+                Ok(Some(m)) => match bus::decode::<SessionAnnouncement>(&m.key, &m.payload) {
+                    Ok(e) => {
+                        if let Ok(mut current) = self.session.lock()
+                            && current.as_deref() != Some(e.body.session.as_str())
+                        {
+                            tracing::info!(
+                                "{}: coordinator session {}",
+                                self.robot,
+                                e.body.session
+                            );
+                            *current = Some(e.body.session);
+                        }
+                    }
+                    Err(reason) => tracing::warn!("ignored a session announcement: {reason}"),
+                },
+                Ok(None) => return,
+                Err(e) => {
+                    tracing::warn!("{e}");
+                    return;
+                }
+            }
+        }
     }
 }
 
@@ -464,10 +521,13 @@ impl AgentLink {
             &agent_key(robot, "history"),
             Arc::new(move || served.lock().map(|h| h.clone()).unwrap_or_default()),
         )?;
+        let sessions = bus.subscribe(&session_key())?;
         let status = StatusLink {
             bus,
             robot: robot.to_owned(),
             seq,
+            session: Arc::new(Mutex::new(None)),
+            sessions: Arc::new(Mutex::new(sessions)),
             status: Arc::new(Mutex::new(AgentStatus {
                 state: AgentState::Starting,
                 good: 0,
@@ -484,6 +544,7 @@ impl AgentLink {
             let status = status.clone();
             std::thread::spawn(move || {
                 while !done.load(Ordering::SeqCst) {
+                    status.hear_session();
                     if let Err(e) = status.publish() {
                         tracing::warn!("status heartbeat: {e:#}");
                     }
@@ -503,10 +564,7 @@ impl AgentLink {
     /// Publishes a capture and keeps it for the history queryable.
     fn publish_capture(&self, msg: Capture) -> anyhow::Result<()> {
         let key = agent_key(&self.status.robot, "capture");
-        let bytes = bus::encode(
-            &key,
-            &Envelope::new(&self.status.robot, self.status.seq.take()?, msg),
-        )?;
+        let bytes = bus::encode(&key, &self.status.envelope(msg)?)?;
         self.history
             .lock()
             .map_err(|_| anyhow::anyhow!("history lock poisoned"))?
@@ -790,10 +848,12 @@ fn record(opts: &AgentOptions, cap: &SourceCapture, msg: &Capture) {
     }
 }
 
-/// The coordinator's result, validated, or `None` when `wait` passed (or
-/// `stop` was set) without one. Invalid result messages are logged and ignored.
+/// The coordinator's result, validated and of the session this agent echoes,
+/// or `None` when `wait` passed (or `stop` was set) without one. Invalid result
+/// messages, and results of another session or of none, are logged and ignored.
 fn wait_for_result(
     results: &dyn bus::Inbox,
+    link: &StatusLink,
     wait: Duration,
     stop: &AtomicBool,
 ) -> Option<CalibrationResult> {
@@ -801,7 +861,23 @@ fn wait_for_result(
     while Instant::now() < deadline && !stop.load(Ordering::SeqCst) {
         match results.recv_timeout(Duration::from_millis(200)) {
             Ok(Some(m)) => match bus::decode::<CalibrationResult>(&m.key, &m.payload) {
-                Ok(envelope) => return Some(envelope.body),
+                Ok(envelope) => {
+                    // An announcement that arrived since the last heartbeat.
+                    link.hear_session();
+                    let echoed = link.session().ok().flatten();
+                    match (&envelope.session, &echoed) {
+                        (Some(theirs), Some(ours)) if theirs == ours => {
+                            return Some(envelope.body);
+                        }
+                        (theirs, ours) => tracing::warn!(
+                            "{}: ignored a result of session {} (this agent echoes {})",
+                            link.robot,
+                            theirs.as_deref().unwrap_or("none"),
+                            ours.as_deref()
+                                .unwrap_or("none: no coordinator session heard")
+                        ),
+                    }
+                }
                 Err(reason) => tracing::warn!("ignored a result message: {reason}"),
             },
             Ok(None) => {}
@@ -817,6 +893,56 @@ fn wait_for_result(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use b2b_protocol::messages::COORDINATOR;
+
+    /// An agent takes a result only from the coordinator's key and only in the
+    /// session it echoes: a result in no session, in another session, or
+    /// before any session was heard is ignored; the session's own is taken.
+    /// Its own messages carry the session from the announcement on.
+    #[test]
+    fn results_are_taken_only_in_the_echoed_session() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = Arc::new(bus::MemoryBus::new());
+        let mine = bus.subscribe(&agent_key("robot1", "**")).unwrap();
+        let results = bus.subscribe(&result_key()).unwrap();
+        let link = AgentLink::open(bus.clone(), "robot1", dir.path(), "test".into()).unwrap();
+        let result: CalibrationResult =
+            serde_json::from_str(include_str!("../../report/tests/fixtures/RESULT.json")).unwrap();
+        let ours = "0123456789abcdef0123456789abcdef";
+        let theirs = "fedcba9876543210fedcba9876543210";
+        let put_result = |session: Option<&str>, tx: f64| {
+            let mut r = result.clone();
+            r.base1_from_base2.t[0] = tx;
+            let e = Envelope::new(COORDINATOR, 1, r).in_session(session);
+            bus::publish(&*bus, &result_key(), &e).unwrap();
+        };
+        let stop = AtomicBool::new(false);
+        let wait = Duration::from_millis(300);
+        // Nothing heard yet: even a well-formed result is not this agent's.
+        put_result(Some(ours), 1.0);
+        assert!(wait_for_result(&*results, &link.status, wait, &stop).is_none());
+        let announce = Envelope::new(
+            COORDINATOR,
+            2,
+            SessionAnnouncement {
+                session: ours.into(),
+            },
+        );
+        bus::publish(&*bus, &session_key(), &announce).unwrap();
+        put_result(None, 2.0);
+        put_result(Some(theirs), 3.0);
+        put_result(Some(ours), 4.0);
+        let got = wait_for_result(&*results, &link.status, Duration::from_secs(2), &stop).unwrap();
+        assert_eq!(got.base1_from_base2.t[0], 4.0);
+        // The agent's own messages echo the session now.
+        link.status.publish().unwrap();
+        let mut echoed = None;
+        while let Some(m) = mine.recv_timeout(Duration::from_millis(100)).unwrap() {
+            let e: Envelope<serde_json::Value> = serde_json::from_slice(&m.payload).unwrap();
+            echoed = e.session;
+        }
+        assert_eq!(echoed.as_deref(), Some(ours));
+    }
 
     #[test]
     fn sequence_continues_across_restarts() {

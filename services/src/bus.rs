@@ -539,6 +539,7 @@ mod tests {
             schema: 1,
             robot: "robot1".into(),
             seq: 1,
+            session: None,
             body,
         };
         let err = encode("b2b/agent/robot1/x", &envelope).unwrap_err();

@@ -15,8 +15,8 @@ use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
-    AgentStatus, COORDINATOR, Capture, Envelope, HandEyeUpdate, KEY_ROOT, agent_key,
-    coordinator_alive_key, result_key,
+    AgentStatus, COORDINATOR, Capture, Envelope, HandEyeUpdate, KEY_ROOT, SessionAnnouncement,
+    agent_key, coordinator_alive_key, result_key, session_key,
 };
 
 use crate::agent::Sequence;
@@ -50,20 +50,27 @@ pub struct Counters {
     pub rejected: usize,
 }
 
+/// Journals and keeps one message from the bus; for a valid status, returns
+/// its robot and the session it echoes (a live message, unlike the captures a
+/// history query returns).
 fn handle(
     store: &mut Store,
     counters: &mut Counters,
     key: &str,
     bytes: &[u8],
-) -> anyhow::Result<()> {
+) -> anyhow::Result<Option<(String, Option<String>)>> {
     let Some((_, topic)) = bus::parse_agent_key(key) else {
-        return Ok(());
+        return Ok(None);
     };
+    let mut echo = None;
     let sample = match topic {
         "capture" => bus::decode::<Capture>(key, bytes).map(Sample::Capture),
-        "status" => bus::decode::<AgentStatus>(key, bytes).map(Sample::Status),
+        "status" => bus::decode::<AgentStatus>(key, bytes).map(|e| {
+            echo = Some((e.robot.clone(), e.session.clone()));
+            Sample::Status(e)
+        }),
         "hand_eye" => bus::decode::<HandEyeUpdate>(key, bytes).map(Sample::HandEye),
-        _ => return Ok(()),
+        _ => return Ok(None),
     };
     match sample {
         Ok(sample) => match store.accept(sample)? {
@@ -76,7 +83,7 @@ fn handle(
             tracing::warn!("{reason}");
         }
     }
-    Ok(())
+    Ok(echo)
 }
 
 fn catch_up(
@@ -202,46 +209,130 @@ pub fn run_on(
         );
     }
     let seq = Sequence::open_named(&opts.state_dir, COORDINATOR)?;
+    let session = session_of(&opts.state_dir)?;
+    let announcement = bus::encode(
+        &session_key(),
+        &Envelope::new(
+            COORDINATOR,
+            seq.take()?,
+            SessionAnnouncement {
+                session: session.clone(),
+            },
+        ),
+    )?;
     let _alive = bus.announce(&coordinator_alive_key())?;
     let inbox = bus.subscribe(&format!("{KEY_ROOT}/agent/**"))?;
+    // The session goes out twice a second for as long as the run lasts (the
+    // solve included), so an agent that connects late hears it before the
+    // result.
+    let done = AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        scope.spawn(|| {
+            while !done.load(Ordering::SeqCst) {
+                if let Err(e) = bus.put(&session_key(), announcement.clone()) {
+                    tracing::warn!("announcing the session: {e}");
+                }
+                let started = Instant::now();
+                while started.elapsed() < SESSION_PERIOD && !done.load(Ordering::SeqCst) {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+            }
+        });
+        let out = collect_and_solve(bus, opts, stop, &mut store, &*inbox, &seq, &session);
+        done.store(true, Ordering::SeqCst);
+        out
+    })
+}
+
+/// How often `run` announces its session.
+pub const SESSION_PERIOD: Duration = Duration::from_millis(500);
+
+/// The session of the run whose journal is in `state_dir`: read from
+/// `state_dir/session`, or a new random one written there. A coordinator
+/// restarted on the same folder resumes the same run, so its agents' echo
+/// still holds.
+pub fn session_of(state_dir: &std::path::Path) -> anyhow::Result<String> {
+    let path = state_dir.join("session");
+    match std::fs::read_to_string(&path) {
+        Ok(text) => {
+            let id = text.trim().to_owned();
+            b2b_protocol::messages::validate_session_id(&id)
+                .with_context(|| format!("{}", path.display()))?;
+            Ok(id)
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let id = format!("{:032x}", rand::random::<u128>());
+            let tmp = path.with_extension("tmp");
+            std::fs::write(&tmp, &id)
+                .and_then(|()| std::fs::rename(&tmp, &path))
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            Ok(id)
+        }
+        Err(e) => Err(e).with_context(|| format!("cannot read {}", path.display())),
+    }
+}
+
+/// The body of [`run_on`]: gathers until complete, solves, publishes the
+/// result in `session`.
+fn collect_and_solve(
+    bus: &dyn Bus,
+    opts: &RunOptions,
+    stop: &AtomicBool,
+    store: &mut Store,
+    inbox: &dyn bus::Inbox,
+    seq: &Sequence,
+    session: &str,
+) -> anyhow::Result<(CalibrationResult, Counters)> {
     let mut counters = Counters::default();
-    catch_up(bus, &mut store, &mut counters, &agent_key("*", "history"))?;
+    catch_up(bus, store, &mut counters, &agent_key("*", "history"))?;
     let mut last_check = Instant::now();
     let mut last_report = Instant::now();
+    // The robots whose statuses have echoed this run's session (a later
+    // status without it, forged or stale, takes nothing back).
+    let mut echoed: std::collections::BTreeSet<String> = Default::default();
+    let not_echoing = |store: &Store, echoed: &std::collections::BTreeSet<String>| {
+        let ids = opts.order.clone().unwrap_or_else(|| store.robots());
+        ids.into_iter()
+            .filter(|r| !echoed.contains(r))
+            .collect::<Vec<_>>()
+    };
     loop {
-        if store.complete(opts.order.as_deref(), opts.robots) || stop.load(Ordering::SeqCst) {
+        if stop.load(Ordering::SeqCst)
+            || (store.complete(opts.order.as_deref(), opts.robots)
+                && not_echoing(store, &echoed).is_empty())
+        {
             break;
         }
         if last_report.elapsed() >= WAIT_REPORT_PERIOD {
             last_report = Instant::now();
-            eprintln!(
-                "coordinator: waiting for {}",
-                store
-                    .waiting_for(opts.order.as_deref(), opts.robots)
-                    .join("; ")
-            );
+            let mut waiting = store.waiting_for(opts.order.as_deref(), opts.robots);
+            for r in not_echoing(store, &echoed) {
+                waiting.push(format!(
+                    "{r}: its statuses do not echo this run's session {session} yet (an agent \
+                     of another run, or one that has not heard the coordinator)"
+                ));
+            }
+            eprintln!("coordinator: waiting for {}", waiting.join("; "));
         }
-        if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))? {
-            handle(&mut store, &mut counters, &m.key, &m.payload)?;
+        if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))?
+            && let Some((robot, Some(echo))) = handle(store, &mut counters, &m.key, &m.payload)?
+            && echo == session
+        {
+            echoed.insert(robot);
         }
         if last_check.elapsed() > Duration::from_millis(500) {
             last_check = Instant::now();
             for robot in store.missing() {
                 tracing::info!("asking {robot} for captures missed");
-                catch_up(
-                    bus,
-                    &mut store,
-                    &mut counters,
-                    &agent_key(&robot, "history"),
-                )?;
+                catch_up(bus, store, &mut counters, &agent_key(&robot, "history"))?;
             }
         }
     }
-    let result = compute(&store, opts)?;
+    let result = compute(store, opts)?;
     bus::publish(
         bus,
         &result_key(),
-        &Envelope::new(COORDINATOR, seq.take()?, result.clone()),
+        &Envelope::new(COORDINATOR, seq.take()?, result.clone()).in_session(Some(session)),
     )?;
     Ok((result, counters))
 }

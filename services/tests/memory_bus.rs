@@ -97,3 +97,110 @@ fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
     assert!(envelope["seq"].as_u64().unwrap() >= 1);
     assert!(envelope["body"]["T_base1_base2"].is_object());
 }
+
+/// A bus that drops the session from one robot's statuses: an agent that never
+/// echoes the coordinator's session (one of another run, or one that never
+/// heard this coordinator).
+struct WithoutEcho {
+    inner: MemoryBus,
+    robot: &'static str,
+}
+
+impl Bus for WithoutEcho {
+    fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), b2b_services::bus::BusError> {
+        if key == format!("b2b/agent/{}/status", self.robot) {
+            let mut v: serde_json::Value = serde_json::from_slice(&payload).unwrap();
+            v.as_object_mut().unwrap().remove("session");
+            return self.inner.put(key, serde_json::to_vec(&v).unwrap());
+        }
+        self.inner.put(key, payload)
+    }
+    fn subscribe(
+        &self,
+        key_expr: &str,
+    ) -> Result<Box<dyn b2b_services::bus::Inbox>, b2b_services::bus::BusError> {
+        self.inner.subscribe(key_expr)
+    }
+    fn query(
+        &self,
+        selector: &str,
+        timeout: Duration,
+    ) -> Result<Vec<b2b_services::bus::Received>, b2b_services::bus::BusError> {
+        self.inner.query(selector, timeout)
+    }
+    fn serve(
+        &self,
+        key: &str,
+        replies: b2b_services::bus::Replies,
+    ) -> Result<b2b_services::bus::Declaration, b2b_services::bus::BusError> {
+        self.inner.serve(key, replies)
+    }
+    fn announce(
+        &self,
+        key: &str,
+    ) -> Result<b2b_services::bus::Declaration, b2b_services::bus::BusError> {
+        self.inner.announce(key)
+    }
+}
+
+/// The coordinator computes only once every robot's statuses echo its
+/// session: with robot2's echo removed it is still waiting when stopped at
+/// 6 s, although both agents finish within about two seconds (the test above).
+#[test]
+fn the_coordinator_waits_for_every_robot_to_echo_its_session() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = Arc::new(WithoutEcho {
+        inner: MemoryBus::new(),
+        robot: "robot2",
+    });
+    let stop = Arc::new(AtomicBool::new(false));
+    let started = std::time::Instant::now();
+    {
+        let stop = Arc::clone(&stop);
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_secs(6));
+            stop.store(true, Ordering::SeqCst);
+        });
+    }
+    let stop = &*stop;
+    let finished_at = std::thread::scope(|s| {
+        let coordinator = s.spawn(|| {
+            let opts = RunOptions {
+                zenoh: None,
+                state_dir: dir.path().join("coordinator"),
+                robots: 2,
+                order: Some(vec!["robot1".into(), "robot2".into()]),
+                refine: RefineOptions::default(),
+                method: b2b_pipeline::B2bMethod::Board,
+                rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
+            };
+            let _ = run_on(&*bus, &opts, stop);
+            started.elapsed()
+        });
+        for robot in ["robot1", "robot2"] {
+            let bus: Arc<dyn Bus> = bus.clone();
+            let dir = &dir;
+            s.spawn(move || {
+                let opts = AgentOptions {
+                    robot: robot.into(),
+                    zenoh: None,
+                    state_dir: dir.path().join(robot),
+                    pace: Duration::ZERO,
+                    wait_result: Duration::from_secs(8),
+                    progress: false,
+                    refine: RefineOptions::default(),
+                    rerun: Arc::new(b2b_viz::Recorder::disabled()),
+                };
+                let mut source = ReplaySource::open(&dataset(), robot).unwrap();
+                let _ = run_agent_on(bus, &opts, &mut source, stop);
+            });
+        }
+        coordinator.join().unwrap()
+    });
+    // Both agents finish in about a second (the test above); the coordinator
+    // waited for robot2's echo until the stop.
+    assert!(
+        finished_at >= Duration::from_secs(6),
+        "the coordinator solved after {finished_at:?} without robot2 echoing its session"
+    );
+}
