@@ -470,3 +470,130 @@ fn run_with_rogues(access_control: bool) -> Outcome {
         agents,
     }
 }
+
+/// The deployment the README describes, on one machine: the coordinator's host
+/// is 127.0.0.3 (a loopback address of its own), it listens on every address,
+/// and `pki init` names that host in its certificate. Each host gets only its
+/// own files, copied into its own folder with the paths in its configuration
+/// fixed (`ca.key` stays with the authority). Both carts reach the coordinator
+/// by its host's address and the run gives the offline result; a cart that
+/// reaches the same coordinator by an address its certificate does not name
+/// (127.0.0.2; it names 127.0.0.3, `localhost` and 127.0.0.1) is refused.
+#[test]
+fn three_hosts_configured_as_the_readme_says_calibrate() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let authority = dir.join("authority");
+    let port = free_port();
+    let listen = format!("tls/0.0.0.0:{port}");
+    let connect = format!("tls/127.0.0.3:{port}");
+    pki_command(
+        &[
+            "init",
+            "--robots",
+            "robot1,robot2",
+            "--listen",
+            &listen,
+            "--connect",
+            &connect,
+        ],
+        &authority,
+    );
+    // "Copy ca.pem, <robot>.pem, <robot>.key and <robot>.json5 to each cart
+    // and fix the file paths in the configuration."
+    let install = |host: &str, holder: &str| -> PathBuf {
+        let to = dir.join(host);
+        std::fs::create_dir_all(&to).unwrap();
+        for file in [
+            "ca.pem".to_owned(),
+            format!("{holder}.pem"),
+            format!("{holder}.key"),
+        ] {
+            std::fs::copy(authority.join(&file), to.join(&file)).unwrap();
+        }
+        let from = authority.display().to_string();
+        let there = to.display().to_string();
+        derived(
+            &authority.join(format!("{holder}.json5")),
+            &to.join(format!("{holder}.json5")),
+            |v| {
+                let tls = v["transport"]["link"]["tls"].as_object_mut().unwrap();
+                for value in tls.values_mut() {
+                    if let Some(path) = value.as_str() {
+                        *value = path.replace(&from, &there).into();
+                    }
+                }
+            },
+        )
+    };
+    let coordinator_cfg = install("coordinator-host", "coordinator");
+    let carts: Vec<(&str, PathBuf)> = [("robot1", "cart1-host"), ("robot2", "cart2-host")]
+        .into_iter()
+        .map(|(robot, host)| (robot, install(host, robot)))
+        .collect();
+    for host in ["coordinator-host", "cart1-host", "cart2-host"] {
+        let mut names: Vec<String> = std::fs::read_dir(dir.join(host))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert_eq!(names.len(), 4, "{host}: {names:?}");
+        assert!(!names.contains(&"ca.key".to_owned()), "{host}: {names:?}");
+        let config = names.iter().find(|n| n.ends_with(".json5")).unwrap();
+        let config = std::fs::read_to_string(dir.join(host).join(config)).unwrap();
+        assert!(!config.contains("authority"), "{host}: {config}");
+    }
+    let run = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .current_dir(dir.join("coordinator-host"))
+        .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+        .arg(&coordinator_cfg)
+        .arg("--state-dir")
+        .arg(dir.join("coordinator-host/state"))
+        .arg("--out")
+        .arg(dir.join("coordinator-host/RESULT.json"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut run = Killed(run);
+    // The coordinator's host by an address the certificate does not name.
+    let elsewhere = derived(&carts[0].1, &dir.join("cart1-host/elsewhere.json5"), |v| {
+        v["connect"]["endpoints"] = serde_json::json!([format!("tls/127.0.0.2:{port}")]);
+    });
+    assert_eq!(
+        peers_of(&elsewhere),
+        0,
+        "a certificate naming 127.0.0.3 was taken for 127.0.0.2"
+    );
+    let agents: Vec<(Child, &str)> = carts
+        .iter()
+        .map(|(robot, config)| {
+            let state = dir.join(format!("{robot}-state"));
+            (agent(robot, &dataset(), config, &state, 0), *robot)
+        })
+        .collect();
+    let offline = offline_result_of(dir, &dataset(), "board");
+    let t = offline.base1_from_base2.t;
+    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
+    for (a, robot) in agents {
+        let said = finished(a, robot, Duration::from_secs(120));
+        assert!(said.contains(&real), "{robot}: {said} (expected {real})");
+    }
+    let start = Instant::now();
+    let status = loop {
+        if let Some(status) = run.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the coordinator did not exit"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "the coordinator failed");
+    let live: b2b_protocol::CalibrationResult = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("coordinator-host/RESULT.json")).unwrap(),
+    )
+    .unwrap();
+    assert_same(&live, &offline);
+}
