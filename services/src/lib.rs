@@ -22,16 +22,60 @@ use std::path::Path;
 
 use anyhow::Context;
 
-/// Logs to stderr, `RUST_LOG` overriding the default level (warn).
+/// Logs to stderr, `RUST_LOG` overriding the default level (warn); every
+/// message zenoh's access control refuses is logged too ([`AccessRefusals`]).
 pub fn init_logging() {
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    use tracing_subscriber::{Layer, filter::Targets};
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(filter)
+    let fmt = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         // Colour only on a terminal: a log written to a file or a pipe stays text.
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_filter(filter);
+    let refusals = AccessRefusals
+        .with_filter(Targets::new().with_target(ACCESS_CONTROL_TARGET, tracing::Level::TRACE));
+    let _ = tracing_subscriber::registry()
+        .with(fmt)
+        .with(refusals)
         .try_init();
+}
+
+/// Where zenoh's access control logs its decisions.
+pub const ACCESS_CONTROL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+
+/// zenoh's access control says what it refuses only at trace level, beside a
+/// trace line for every message it lets through. This layer takes the
+/// refusals alone ("… is unauthorized to …") and writes each to stderr as a
+/// warning: a cart speaking for another, a peer publishing a result, all named.
+#[derive(Debug, Clone, Copy)]
+pub struct AccessRefusals;
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for AccessRefusals {
+    fn on_event(
+        &self,
+        event: &tracing::Event<'_>,
+        _ctx: tracing_subscriber::layer::Context<'_, S>,
+    ) {
+        struct Message(String);
+        impl tracing::field::Visit for Message {
+            fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+                if field.name() == "message" {
+                    self.0 = format!("{value:?}");
+                }
+            }
+        }
+        let mut m = Message(String::new());
+        event.record(&mut m);
+        if m.0.contains(" is unauthorized to ") {
+            eprintln!(
+                "WARN access control refused: {}",
+                m.0.trim_start_matches("Using cached result: ")
+            );
+        }
+    }
 }
 
 /// What the binaries log without `RUST_LOG`: warnings, except zenoh's "Scouting

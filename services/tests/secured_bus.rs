@@ -200,6 +200,25 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
         "{}",
         o.coordinator
     );
+    // The access control's refusals are logged: robot2's certificate speaking
+    // for robot1, and publishing a result.
+    for line in o
+        .coordinator
+        .lines()
+        .filter(|l| l.contains("access control refused"))
+        .take(3)
+    {
+        eprintln!("{line}");
+    }
+    for key in ["b2b/agent/robot1/", "b2b/coordinator/result"] {
+        assert!(
+            o.coordinator
+                .lines()
+                .any(|l| l.contains("access control refused") && l.contains(key)),
+            "no refusal of {key} logged: {}",
+            o.coordinator
+        );
+    }
     // Each real agent received the real result, not the forged one.
     let t = o.offline.base1_from_base2.t;
     let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
