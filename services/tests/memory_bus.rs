@@ -21,6 +21,41 @@ fn dataset() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
 }
 
+/// `coordinator run` for two robots, its journal in `state_dir`.
+fn coordinator_options(state_dir: &Path, order: Option<Vec<String>>) -> RunOptions {
+    RunOptions {
+        zenoh: None,
+        state_dir: state_dir.to_owned(),
+        robots: 2,
+        order,
+        refine: RefineOptions::default(),
+        method: b2b_pipeline::B2bMethod::Board,
+        rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
+    }
+}
+
+/// An agent replaying `robot`'s captures at once, then waiting for the result.
+fn replay_agent(
+    bus: Arc<dyn Bus>,
+    robot: &str,
+    state_dir: &Path,
+    wait_result: Duration,
+    stop: &AtomicBool,
+) -> anyhow::Result<Option<b2b_protocol::CalibrationResult>> {
+    let opts = AgentOptions {
+        robot: robot.into(),
+        zenoh: None,
+        state_dir: state_dir.to_owned(),
+        pace: Duration::ZERO,
+        wait_result,
+        progress: false,
+        refine: RefineOptions::default(),
+        rerun: Arc::new(b2b_viz::Recorder::disabled()),
+    };
+    let mut source = ReplaySource::open(&dataset(), robot)?;
+    run_agent_on(bus, &opts, &mut source, stop)
+}
+
 #[test]
 fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
     let dir = tempfile::tempdir().unwrap();
@@ -39,35 +74,16 @@ fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
     let stop = &*stop;
     let (coordinator, agents) = std::thread::scope(|s| {
         let coordinator = s.spawn(|| {
-            let opts = RunOptions {
-                zenoh: None,
-                state_dir: dir.path().join("coordinator"),
-                robots: 2,
-                order: None,
-                refine: RefineOptions::default(),
-                method: b2b_pipeline::B2bMethod::Board,
-                rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
-            };
+            let opts = coordinator_options(&dir.path().join("coordinator"), None);
             run_on(&*bus, &opts, stop).unwrap()
         });
         let agents: Vec<_> = ["robot1", "robot2"]
             .into_iter()
             .map(|robot| {
                 let bus: Arc<dyn Bus> = bus.clone();
-                let dir = &dir;
+                let state = dir.path().join(robot);
                 s.spawn(move || {
-                    let opts = AgentOptions {
-                        robot: robot.into(),
-                        zenoh: None,
-                        state_dir: dir.path().join(robot),
-                        pace: Duration::ZERO,
-                        wait_result: Duration::from_secs(120),
-                        progress: false,
-                        refine: RefineOptions::default(),
-                        rerun: Arc::new(b2b_viz::Recorder::disabled()),
-                    };
-                    let mut source = ReplaySource::open(&dataset(), robot).unwrap();
-                    run_agent_on(bus, &opts, &mut source, stop).unwrap()
+                    replay_agent(bus, robot, &state, Duration::from_secs(120), stop).unwrap()
                 })
             })
             .collect();
@@ -165,34 +181,19 @@ fn the_coordinator_waits_for_every_robot_to_echo_its_session() {
     let stop = &*stop;
     let finished_at = std::thread::scope(|s| {
         let coordinator = s.spawn(|| {
-            let opts = RunOptions {
-                zenoh: None,
-                state_dir: dir.path().join("coordinator"),
-                robots: 2,
-                order: Some(vec!["robot1".into(), "robot2".into()]),
-                refine: RefineOptions::default(),
-                method: b2b_pipeline::B2bMethod::Board,
-                rgbd: b2b_pipeline::rgbd::RgbdOptions::default(),
-            };
-            let _ = run_on(&*bus, &opts, stop);
+            let order = Some(vec!["robot1".into(), "robot2".into()]);
+            let _ = run_on(
+                &*bus,
+                &coordinator_options(&dir.path().join("coordinator"), order),
+                stop,
+            );
             started.elapsed()
         });
         for robot in ["robot1", "robot2"] {
             let bus: Arc<dyn Bus> = bus.clone();
-            let dir = &dir;
+            let state = dir.path().join(robot);
             s.spawn(move || {
-                let opts = AgentOptions {
-                    robot: robot.into(),
-                    zenoh: None,
-                    state_dir: dir.path().join(robot),
-                    pace: Duration::ZERO,
-                    wait_result: Duration::from_secs(8),
-                    progress: false,
-                    refine: RefineOptions::default(),
-                    rerun: Arc::new(b2b_viz::Recorder::disabled()),
-                };
-                let mut source = ReplaySource::open(&dataset(), robot).unwrap();
-                let _ = run_agent_on(bus, &opts, &mut source, stop);
+                let _ = replay_agent(bus, robot, &state, Duration::from_secs(8), stop);
             });
         }
         coordinator.join().unwrap()

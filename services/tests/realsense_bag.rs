@@ -533,7 +533,27 @@ fn the_rgbd_method_calibrates_from_played_back_frames() {
             &frames,
             &Timing::regular(n, 1000.0, 100.0, 0.4),
         );
-        let p = play(&bag);
+        // Every capture needs its frames. Playback on a loaded machine may drop
+        // a frame at the start beyond the lead-in (one CI run lost colour frame
+        // 2): the other tests here check what playback delivers; this one plays
+        // the recording again, at most three times, until every frame came.
+        let complete = |p: &Playback| {
+            (2..=n as u64).all(|k| {
+                p.colour.iter().any(|h| h.frame_number == k)
+                    && p.depth.iter().any(|(h, _)| h.frame_number == k)
+            })
+        };
+        let mut p = play(&bag);
+        for attempt in 2..=3 {
+            if complete(&p) {
+                break;
+            }
+            eprintln!(
+                "{}: playback lost a frame, playing again (attempt {attempt}): {}",
+                robot.id, p.stderr
+            );
+            p = play(&bag);
+        }
         for (k, cap) in robot.captures.iter().enumerate() {
             // Frame 1 is the lead-in.
             let number = k as u64 + 2;
