@@ -102,7 +102,8 @@ pub enum Played {
 
 /// A running RealSense pipeline with colour (RGB8) and depth (Z16) streams.
 pub struct RealSense {
-    pipeline: ActivePipeline,
+    /// `None` only while being dropped (see the `Drop` impl).
+    pipeline: Option<ActivePipeline>,
     recorded: Recorded,
     colour_from_depth: Extrinsic,
     /// One depth frame copied from librealsense, and aligned: used only
@@ -252,7 +253,7 @@ impl RealSense {
         };
         let colour_from_depth = Extrinsic::colour_from_depth(&recorded.depth);
         Ok(RealSense {
-            pipeline,
+            pipeline: Some(pipeline),
             recorded,
             colour_from_depth,
             raw_depth: Vec::new(),
@@ -331,7 +332,10 @@ impl RealSense {
         timeout: Duration,
     ) -> Result<Vec<Played>, FramesError> {
         let mut out = Vec::new();
-        let frames = match self.pipeline.wait(Some(timeout)) {
+        let Some(pipeline) = self.pipeline.as_mut() else {
+            return Ok(vec![Played::End]);
+        };
+        let frames = match pipeline.wait(Some(timeout)) {
             Ok(f) => f,
             // A recording played once ends with no more frames.
             Err(_) if self.playback && self.last_raw_number > 0 => {
@@ -608,5 +612,16 @@ fn time_ns(f: &impl FrameEx, latency_ns: u64) -> u64 {
             (f.timestamp() * 1e6) as u64
         }
         _ => crate::now_ns().saturating_sub(latency_ns),
+    }
+}
+
+/// realsense-rust deletes a running pipeline without stopping it, and a
+/// looping playback's thread can then outlive what it reads (one CI run of the
+/// playback bench crashed as it ended). The pipeline is stopped first.
+impl Drop for RealSense {
+    fn drop(&mut self) {
+        if let Some(pipeline) = self.pipeline.take() {
+            drop(pipeline.stop());
+        }
     }
 }
