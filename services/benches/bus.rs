@@ -5,8 +5,10 @@
 //!    it back, and half the round trip is the one-way latency. Reported as p50 /
 //!    p99 (goal p99 <= 1 ms), on plain TCP and on the secured bus (`coordinator
 //!    pki init`: mutual TLS and access control, so this process speaks as the
-//!    coordinator and the echo as cart robot1), each with the time from opening a
-//!    session to its first peer (the TCP or TLS handshake, median of 5).
+//!    coordinator and the echo as cart robot1, and every message is signed and
+//!    checked: both ends use the services' `ZenohBus`), each with the time from
+//!    opening a session to its first peer (the TCP or TLS handshake, median of 5).
+//!    Then signing and checking alone, in this process.
 //! 2. A full live replay of `datasets/sim-checkerboard-2x12`: coordinator and two
 //!    agents as processes, detection and the joint solve included, wall time until
 //!    the coordinator has written its result.
@@ -135,22 +137,16 @@ fn handshake_ms(listen: &Path, connect: &Path, runs: usize) -> f64 {
 }
 
 fn latency(messages: usize, transport: Transport) {
+    use b2b_services::bus::{Bus, Role, ZenohBus};
     let dir = tempfile::tempdir().expect("tempdir");
     let (listen, connect, prefix, pong_key) = bus_for(transport, dir.path());
     let handshake = handshake_ms(&listen, &connect, 5);
-    let session = b2b_services::bus::open(
-        b2b_services::bus::config(Some(&listen), b2b_services::bus::Role::Coordinator)
-            .expect("config"),
-    )
-    .expect("session");
-    let pongs = session
-        .declare_subscriber(pong_key.clone())
-        .wait()
-        .expect("subscribe");
-    let ping = session
-        .declare_publisher(format!("{prefix}/ping"))
-        .wait()
-        .expect("publisher");
+    // The services' own bus: on the secured configuration each message is
+    // signed by its sender and checked by its receiver, both ways.
+    let bus = ZenohBus::open(Some(&listen), Role::Coordinator).expect("session");
+    assert_eq!(bus.signs(), transport == Transport::Tls);
+    let pongs = bus.subscribe(&pong_key).expect("subscribe");
+    let ping_key = format!("{prefix}/ping");
     let mut echo = Command::new(env!("CARGO_BIN_EXE_b2b-bus-echo"))
         .arg("--zenoh")
         .arg(&connect)
@@ -162,7 +158,7 @@ fn latency(messages: usize, transport: Transport) {
     // Wait until the echo answers.
     let start = Instant::now();
     loop {
-        ping.put(payload.clone()).wait().expect("put");
+        bus.put(&ping_key, payload.clone()).expect("put");
         if let Ok(Some(_)) = pongs.recv_timeout(Duration::from_millis(100)) {
             break;
         }
@@ -175,26 +171,63 @@ fn latency(messages: usize, transport: Transport) {
     let mut one_way_us = Vec::with_capacity(messages);
     for _ in 0..messages {
         let t0 = Instant::now();
-        ping.put(payload.clone()).wait().expect("put");
+        bus.put(&ping_key, payload.clone()).expect("put");
         match pongs.recv_timeout(Duration::from_secs(2)) {
-            Ok(Some(_)) => one_way_us.push(t0.elapsed().as_secs_f64() * 1e6 / 2.0),
+            Ok(Some(m)) => {
+                one_way_us.push(t0.elapsed().as_secs_f64() * 1e6 / 2.0);
+                if transport == Transport::Tls {
+                    assert_eq!(m.signer.as_deref(), Some("robot1"));
+                }
+            }
             _ => panic!("a ping was lost"),
         }
     }
-    let _ = session.put(format!("{prefix}/stop"), "stop").wait();
+    let _ = bus.put(&format!("{prefix}/stop"), b"stop".to_vec());
     let _ = echo.wait();
     println!(
         "zenoh pose message ({} bytes) between processes, one-way over loopback, {}, {} messages: session to first peer {:.1} ms; p50 {:.0} us, p99 {:.0} us, max {:.0} us",
         payload.len(),
         match transport {
             Transport::Tcp => "plain TCP",
-            Transport::Tls => "mutual TLS + access control",
+            Transport::Tls => "mutual TLS + access control + signed messages",
         },
         messages,
         handshake,
         percentile(&mut one_way_us, 0.5),
         percentile(&mut one_way_us, 0.99),
         one_way_us.iter().copied().fold(0.0, f64::max)
+    );
+    if transport == Transport::Tls {
+        signing_cost(&dir.path().join("pki"), &payload, messages);
+    }
+}
+
+/// The per-message checks alone, in this process: signing a pose message, and
+/// checking its signature (the certificate already checked once), p50 and p99.
+fn signing_cost(pki: &Path, payload: &[u8], messages: usize) {
+    use b2b_services::signing::{Identity, Verifier};
+    let me =
+        Identity::from_files(&pki.join("robot1.pem"), &pki.join("robot1.key")).expect("identity");
+    let verifier = Verifier::from_file(&pki.join("ca.pem")).expect("authority");
+    let key = "b2b/agent/robot1/capture";
+    let (mut sign_us, mut verify_us) = (Vec::new(), Vec::new());
+    for _ in 0..messages {
+        let t0 = Instant::now();
+        let signature = me.sign(key, payload).expect("sign");
+        sign_us.push(t0.elapsed().as_secs_f64() * 1e6);
+        let t0 = Instant::now();
+        let signer = verifier
+            .verify(key, payload, Some(&signature))
+            .expect("verify");
+        verify_us.push(t0.elapsed().as_secs_f64() * 1e6);
+        assert_eq!(signer, "robot1");
+    }
+    println!(
+        "per-message signature, {messages} pose messages: sign p50 {:.0} us, p99 {:.0} us; check p50 {:.0} us, p99 {:.0} us",
+        percentile(&mut sign_us, 0.5),
+        percentile(&mut sign_us, 0.99),
+        percentile(&mut verify_us, 0.5),
+        percentile(&mut verify_us, 0.99)
     );
 }
 

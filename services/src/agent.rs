@@ -481,7 +481,10 @@ impl StatusLink {
                             *current = Some(e.body.session);
                         }
                     }
-                    Err(reason) => tracing::warn!("ignored a session announcement: {reason}"),
+                    Err(reason) => crate::warn_limited(
+                        &m.key,
+                        &format!("ignored a session announcement: {reason}"),
+                    ),
                 },
                 Ok(None) => return,
                 Err(e) => {
@@ -878,7 +881,9 @@ fn wait_for_result(
                         ),
                     }
                 }
-                Err(reason) => tracing::warn!("ignored a result message: {reason}"),
+                Err(reason) => {
+                    crate::warn_limited(&m.key, &format!("ignored a result message: {reason}"))
+                }
             },
             Ok(None) => {}
             Err(e) => {

@@ -12,9 +12,14 @@
 //! configuration file is passed to zenoh as it is: peers or routers, TLS (zenoh
 //! is built with its TLS transport) and access control are zenoh's own JSON5
 //! keys. zenoh is built without `auth_usrpwd` and `auth_pubkey`: a
-//! user/password section in a configuration authenticates nothing. Until the
-//! bus is authenticated, the coordinator's journal is the defence: a capture
-//! that contradicts one held is a conflict and used by neither version
+//! user/password section in a configuration authenticates nothing.
+//!
+//! A secured configuration (mutual TLS, every endpoint TLS: what `coordinator
+//! pki init` writes) also signs every put and reply with the process's
+//! certificate key and accepts only messages signed by the certificate of the
+//! sender their key names ([`crate::signing`]); [`Received::signer`] says who.
+//! On an open bus, the coordinator's journal is the defence: a capture that
+//! contradicts one held is a conflict and used by neither version
 //! ([`crate::store::Arrival`]), and a status neither stalls nor completes a run
 //! beyond the captures that arrived.
 //!
@@ -29,6 +34,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use b2b_protocol::messages::{COORDINATOR, Envelope, KEY_ROOT, Validate};
+
+use crate::signing::Signing;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use zenoh::Wait;
@@ -63,6 +70,10 @@ pub enum BusError {
 pub struct Received {
     pub key: String,
     pub payload: Vec<u8>,
+    /// On a secured bus, the common name of the certificate whose key signed
+    /// the message (always the sender its key names: anything else is dropped,
+    /// [`crate::signing`]); `None` on a bus without signatures.
+    pub signer: Option<String>,
 }
 
 /// Keeps a declaration (a queryable, a liveliness token) alive; dropping it
@@ -181,10 +192,12 @@ pub fn open(config: zenoh::Config) -> Result<zenoh::Session, BusError> {
     })
 }
 
-/// The bus between processes: one zenoh session.
+/// The bus between processes: one zenoh session; on a secured configuration,
+/// every message signed and every message checked ([`crate::signing`]).
 #[derive(Debug, Clone)]
 pub struct ZenohBus {
     session: zenoh::Session,
+    signing: Option<Arc<Signing>>,
 }
 
 impl ZenohBus {
@@ -192,12 +205,28 @@ impl ZenohBus {
     /// joins is not authenticated.
     pub fn open(file: Option<&Path>, role: Role) -> Result<ZenohBus, BusError> {
         let config = config(file, role)?;
-        if let Some(why) = unauthenticated(file, &config) {
-            tracing::warn!("the bus is not authenticated: {why}");
-        }
+        let signing = match (unauthenticated(file, &config), file) {
+            (None, Some(path)) => Some(Arc::new(Signing::from_config(&config, path).map_err(
+                |e| BusError::Config {
+                    path: path.display().to_string(),
+                    reason: e.to_string(),
+                },
+            )?)),
+            (Some(why), _) => {
+                tracing::warn!("the bus is not authenticated: {why}");
+                None
+            }
+            (None, None) => None,
+        };
         Ok(ZenohBus {
             session: open(config)?,
+            signing,
         })
+    }
+
+    /// Whether this session signs and checks every message.
+    pub fn signs(&self) -> bool {
+        self.signing.is_some()
     }
 
     /// The session itself, for what the trait does not cover.
@@ -210,27 +239,78 @@ struct ZenohInbox {
     key: String,
     subscriber:
         zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    signing: Option<Arc<Signing>>,
+}
+
+/// A sample as received: checked against its signature on a secured bus, where
+/// one that fails is logged (rate-limited per key) and dropped (`None`).
+fn received(sample: &zenoh::sample::Sample, signing: Option<&Signing>) -> Option<Received> {
+    let key = sample.key_expr().as_str().to_owned();
+    let payload = sample.payload().to_bytes().into_owned();
+    let signer = match signing {
+        None => None,
+        Some(s) => {
+            let attachment = sample.attachment().map(|a| a.to_bytes());
+            match s.verifier.verify(&key, &payload, attachment.as_deref()) {
+                Ok(signer) => Some(signer),
+                Err(e) => {
+                    crate::warn_limited(&key, &format!("{key}: rejected: {e}"));
+                    return None;
+                }
+            }
+        }
+    };
+    Some(Received {
+        key,
+        payload,
+        signer,
+    })
 }
 
 impl Inbox for ZenohInbox {
     fn recv_timeout(&self, timeout: Duration) -> Result<Option<Received>, BusError> {
-        match self.subscriber.recv_timeout(timeout) {
-            Ok(Some(sample)) => Ok(Some(Received {
-                key: sample.key_expr().as_str().to_owned(),
-                payload: sample.payload().to_bytes().into_owned(),
-            })),
-            Ok(None) => Ok(None),
-            Err(_) => Err(BusError::Closed {
-                key: self.key.clone(),
-            }),
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            match self.subscriber.recv_timeout(left) {
+                Ok(Some(sample)) => {
+                    if let Some(r) = received(&sample, self.signing.as_deref()) {
+                        return Ok(Some(r));
+                    }
+                    // Dropped (logged): wait on for the rest of the timeout.
+                }
+                Ok(None) => return Ok(None),
+                Err(_) => {
+                    return Err(BusError::Closed {
+                        key: self.key.clone(),
+                    });
+                }
+            }
         }
     }
 }
 
+/// The signature attachment for `payload` under `key`, on a secured bus.
+fn attachment(
+    signing: Option<&Signing>,
+    key: &str,
+    payload: &[u8],
+) -> Result<Option<Vec<u8>>, BusError> {
+    signing
+        .map(|s| s.identity.sign(key, payload))
+        .transpose()
+        .map_err(|e| BusError::Publish {
+            key: key.to_owned(),
+            reason: e.to_string(),
+        })
+}
+
 impl Bus for ZenohBus {
     fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), BusError> {
+        let signature = attachment(self.signing.as_deref(), key, &payload)?;
         self.session
             .put(key, payload)
+            .attachment(signature)
             .wait()
             .map_err(|e| BusError::Publish {
                 key: key.to_owned(),
@@ -250,6 +330,7 @@ impl Bus for ZenohBus {
         Ok(Box::new(ZenohInbox {
             key: key_expr.to_owned(),
             subscriber,
+            signing: self.signing.clone(),
         }))
     }
 
@@ -267,11 +348,10 @@ impl Bus for ZenohBus {
             })?;
         let mut out = Vec::new();
         while let Ok(reply) = replies.recv() {
-            if let Ok(sample) = reply.result() {
-                out.push(Received {
-                    key: sample.key_expr().as_str().to_owned(),
-                    payload: sample.payload().to_bytes().into_owned(),
-                });
+            if let Ok(sample) = reply.result()
+                && let Some(r) = received(sample, self.signing.as_deref())
+            {
+                out.push(r);
             }
         }
         Ok(out)
@@ -279,12 +359,24 @@ impl Bus for ZenohBus {
 
     fn serve(&self, key: &str, replies: Replies) -> Result<Declaration, BusError> {
         let reply_key = key.to_owned();
+        let signing = self.signing.clone();
         let queryable = self
             .session
             .declare_queryable(key.to_owned())
             .callback(move |query| {
                 for bytes in replies() {
-                    if let Err(e) = query.reply(&reply_key, bytes).wait() {
+                    let sent =
+                        attachment(signing.as_deref(), &reply_key, &bytes).and_then(|signature| {
+                            query
+                                .reply(&reply_key, bytes)
+                                .attachment(signature)
+                                .wait()
+                                .map_err(|e| BusError::Publish {
+                                    key: reply_key.clone(),
+                                    reason: e.to_string(),
+                                })
+                        });
+                    if let Err(e) = sent {
                         tracing::warn!("reply on {reply_key} failed: {e}");
                     }
                 }
@@ -385,6 +477,7 @@ impl Bus for MemoryBus {
                     .send(Received {
                         key: key.to_owned(),
                         payload: payload.clone(),
+                        signer: None,
                     })
                     .is_ok()
         });
@@ -418,6 +511,7 @@ impl Bus for MemoryBus {
                 replies().into_iter().map(move |payload| Received {
                     key: key.clone(),
                     payload,
+                    signer: None,
                 })
             })
             .collect())

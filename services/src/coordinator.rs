@@ -50,14 +50,16 @@ pub struct Counters {
     pub rejected: usize,
 }
 
-/// Journals and keeps one message from the bus; for a valid status, returns
-/// its robot and the session it echoes (a live message, unlike the captures a
-/// history query returns).
+/// Journals and keeps one message from the bus, with the certificate that
+/// signed it on the secured bus; for a valid status, returns its robot and the
+/// session it echoes (a live message, unlike the captures a history query
+/// returns).
 fn handle(
     store: &mut Store,
     counters: &mut Counters,
     key: &str,
     bytes: &[u8],
+    signer: Option<&str>,
 ) -> anyhow::Result<Option<(String, Option<String>)>> {
     let Some((_, topic)) = bus::parse_agent_key(key) else {
         return Ok(None);
@@ -73,14 +75,14 @@ fn handle(
         _ => return Ok(None),
     };
     match sample {
-        Ok(sample) => match store.accept(sample)? {
+        Ok(sample) => match store.accept_from(sample, signer)? {
             Arrival::New => counters.accepted += 1,
             Arrival::Duplicate => counters.duplicates += 1,
             Arrival::Conflict => counters.conflicts += 1,
         },
         Err(reason) => {
             counters.rejected += 1;
-            tracing::warn!("{reason}");
+            crate::warn_limited(key, &reason);
         }
     }
     Ok(echo)
@@ -94,7 +96,13 @@ fn catch_up(
 ) -> anyhow::Result<()> {
     for reply in bus.query(selector, Duration::from_secs(2))? {
         let key = reply.key.replace("/history", "/capture");
-        handle(store, counters, &key, &reply.payload)?;
+        handle(
+            store,
+            counters,
+            &key,
+            &reply.payload,
+            reply.signer.as_deref(),
+        )?;
     }
     Ok(())
 }
@@ -315,7 +323,13 @@ fn collect_and_solve(
             eprintln!("coordinator: waiting for {}", waiting.join("; "));
         }
         if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))?
-            && let Some((robot, Some(echo))) = handle(store, &mut counters, &m.key, &m.payload)?
+            && let Some((robot, Some(echo))) = handle(
+                store,
+                &mut counters,
+                &m.key,
+                &m.payload,
+                m.signer.as_deref(),
+            )?
             && echo == session
         {
             echoed.insert(robot);

@@ -22,9 +22,12 @@
 //!   whose name is not in a configuration (a cart removed from the platform)
 //!   can say nothing to it.
 //!
-//! Behind that, the coordinator still checks that each message's envelope
-//! names the robot of its key ([`b2b_protocol::messages::Envelope::validate`]),
-//! so a wrong access-control rule does not let one cart speak for another.
+//! Behind that, every message is signed with its sender's certificate key, and
+//! a receiver takes it only if the signing certificate is this authority's and
+//! names the sender its key names ([`crate::signing`]); the coordinator also
+//! checks that each envelope names the robot of its key
+//! ([`b2b_protocol::messages::Envelope::validate`]). So a wrong access-control
+//! rule does not let one cart speak for another.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};

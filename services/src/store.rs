@@ -40,6 +40,9 @@ fn row_of(index: u64) -> usize {
 /// The journal file name inside the state folder.
 pub const JOURNAL: &str = "samples.jsonl";
 
+/// The journal line's field naming the certificate that signed the sample.
+pub const SIGNER_FIELD: &str = "signer";
+
 /// What became of a sample offered to the store.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Arrival {
@@ -198,11 +201,21 @@ impl Store {
     /// Keeps a sample: written and flushed to the journal first (a conflicting
     /// capture too: nothing that arrived is lost), then used.
     pub fn accept(&mut self, sample: Sample) -> anyhow::Result<Arrival> {
+        self.accept_from(sample, None)
+    }
+
+    /// [`Store::accept`], the journal line also naming who sent the sample:
+    /// on the secured bus, the certificate that signed it (`"signer"`).
+    pub fn accept_from(&mut self, sample: Sample, signer: Option<&str>) -> anyhow::Result<Arrival> {
         let arrival = self.classify(&sample);
         if arrival == Arrival::Duplicate {
             return Ok(arrival);
         }
-        let mut line = serde_json::to_vec(&sample)?;
+        let mut value = serde_json::to_value(&sample)?;
+        if let (Some(signer), Some(fields)) = (signer, value.as_object_mut()) {
+            fields.insert(SIGNER_FIELD.into(), signer.into());
+        }
+        let mut line = serde_json::to_vec(&value)?;
         line.push(b'\n');
         self.journal
             .write_all(&line)

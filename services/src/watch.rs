@@ -297,7 +297,7 @@ pub fn run(
             Ok(e) => e,
             Err(reason) => {
                 run.rejected += 1;
-                tracing::warn!("{reason}");
+                crate::warn_limited(&msg.key, &reason);
                 continue;
             }
         };

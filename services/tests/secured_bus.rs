@@ -13,7 +13,10 @@
 //!   moved copy.
 //!
 //! The result must equal the offline calibration of the untouched dataset, and
-//! the real agents must receive the real result.
+//! the real agents must receive the real result. It must also when every
+//! access-control rule is gone (a wrong configuration): then the messages'
+//! signatures keep the rogues out, and the journal names the certificate that
+//! signed each sample.
 
 mod common;
 
@@ -140,7 +143,7 @@ fn exited(child: Child, limit: Duration) -> (bool, String) {
     (child.0.wait().unwrap().success(), text)
 }
 
-/// Waits for a child to exit successfully and returns its stdout.
+/// Waits for a child to exit successfully and returns its stdout, then its stderr.
 fn finished(mut child: Child, what: &str, limit: Duration) -> String {
     let start = Instant::now();
     loop {
@@ -151,7 +154,11 @@ fn finished(mut child: Child, what: &str, limit: Duration) -> String {
                 "{what} failed: {}",
                 String::from_utf8_lossy(&out.stderr)
             );
-            return String::from_utf8_lossy(&out.stdout).into_owned();
+            return format!(
+                "{}{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
         if start.elapsed() > limit {
             let _ = child.kill();
@@ -177,6 +184,22 @@ struct Outcome {
     /// Its stdout, then its stderr.
     coordinator: String,
     agents: Vec<String>,
+    /// The coordinator's journal.
+    journal: String,
+}
+
+/// Every journal line names its signer, and the signer is the robot the
+/// sample's envelope names.
+fn assert_journal_signed(journal: &str) {
+    let lines: Vec<serde_json::Value> = journal
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert!(lines.len() >= 20, "{journal}");
+    for l in &lines {
+        assert_eq!(l["signer"], l["robot"], "{l}");
+    }
 }
 
 #[test]
@@ -192,6 +215,7 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
         "{}",
         o.coordinator
     );
+    assert_journal_signed(&o.journal);
     // The garbage robot1's certificate sent was logged, counted and survived.
     assert!(
         o.coordinator
@@ -228,32 +252,48 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
     }
 }
 
-/// The control: the same run with the coordinator's access control removed
-/// (TLS still on). robot2's certificate now speaks for robot1, and it shows:
-/// its moved captures contradict the real ones, which the journal catches as
-/// conflicts and keeps out, so the result cannot be the clean one (or, with
-/// most of robot1's indices in conflict, there is none: "too few captures").
-/// That the secured run shows none of it is the access control's doing.
+/// The same run with every access-control rule removed (TLS still on), as a
+/// wrong configuration would leave it. robot2's certificate now reaches
+/// robot1's keys. Without signatures, its moved captures were heard
+/// (conflicts, or a moved result: this test's earlier form showed it). Now
+/// each of its messages is dropped and logged for its signature: signed by
+/// robot2 under robot1's key. The result is the clean one and each agent takes
+/// the real result. (Its forged result reaches no agent either way: carts
+/// listen on nothing, and the coordinator does not forward a put between
+/// peers; an agent's own check of the result's signature is
+/// `signing::tests`.)
 #[test]
-fn without_access_control_the_same_rogues_are_heard() {
+fn without_access_control_the_signatures_keep_the_rogues_out() {
     let o = run_with_rogues(false);
-    // Which of these happens depends on who is first: the rogue's captures
-    // arriving before the real ones are conflicts (the run then has too few
-    // left, or fewer used); arriving alone, with its own "finished", they
-    // complete robot1 before the real agent starts and move the result.
-    let heard = match &o.live {
-        None => o.coordinator.contains("robot1") && o.coordinator.contains("captures"),
-        Some(live) => {
-            let moved = (0..3)
-                .map(|i| (live.base1_from_base2.t[i] - o.offline.base1_from_base2.t[i]).powi(2))
-                .sum::<f64>()
-                .sqrt();
-            !o.coordinator.contains(" 0 conflicting captures")
-                || live.captures.used != o.offline.captures.used
-                || moved > 1e-3
-        }
-    };
-    assert!(heard, "{}", o.coordinator);
+    let live = o
+        .live
+        .as_ref()
+        .unwrap_or_else(|| panic!("{}", o.coordinator));
+    assert_same(live, &o.offline);
+    assert!(
+        o.coordinator.contains(" 0 conflicting captures"),
+        "{}",
+        o.coordinator
+    );
+    assert_journal_signed(&o.journal);
+    for key in ["b2b/agent/robot1/capture", "b2b/agent/robot1/status"] {
+        let said = format!(
+            "{key}: rejected: signed with the certificate of 'robot2', but the key is robot1's"
+        );
+        assert!(
+            o.coordinator.lines().any(|l| l.contains(&said)),
+            "no '{said}' in {}",
+            o.coordinator
+        );
+    }
+    // No access-control refusals: there was no rule to refuse by.
+    assert!(!o.coordinator.contains("access control refused"));
+    let t = o.offline.base1_from_base2.t;
+    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
+    assert_eq!(o.agents.len(), 2);
+    for said in &o.agents {
+        assert!(said.contains(&real), "{said} (expected {real})");
+    }
 }
 
 /// The coordinator killed mid-run on the secured bus and started again with
@@ -396,17 +436,18 @@ fn run_with_rogues(access_control: bool) -> Outcome {
     )
     .unwrap();
 
-    let coordinator_cfg = if access_control {
-        pki.join("coordinator.json5")
-    } else {
-        derived(
-            &pki.join("coordinator.json5"),
-            &dir.join("open.json5"),
-            |v| {
+    // Every real process's configuration, with or without its access control.
+    let config_of = |holder: &str| {
+        let file = pki.join(format!("{holder}.json5"));
+        if access_control {
+            file
+        } else {
+            derived(&file, &dir.join(format!("open-{holder}.json5")), |v| {
                 v.as_object_mut().unwrap().remove("access_control");
-            },
-        )
+            })
+        }
     };
+    let coordinator_cfg = config_of(COORDINATOR);
     let coordinator = Command::new(env!("CARGO_BIN_EXE_coordinator"))
         .args(["run", "--robots", "robot1,robot2", "--zenoh"])
         .arg(&coordinator_cfg)
@@ -454,14 +495,14 @@ fn run_with_rogues(access_control: bool) -> Outcome {
     let a1 = agent(
         "robot1",
         &dataset(),
-        &pki.join("robot1.json5"),
+        &config_of("robot1"),
         &dir.join("a1"),
         0,
     );
     let a2 = agent(
         "robot2",
         &dataset(),
-        &pki.join("robot2.json5"),
+        &config_of("robot2"),
         &dir.join("a2"),
         0,
     );
@@ -469,12 +510,10 @@ fn run_with_rogues(access_control: bool) -> Outcome {
     let live = ok.then(|| {
         serde_json::from_str(&std::fs::read_to_string(dir.join("RESULT.json")).unwrap()).unwrap()
     });
-    // Without access control (the control run) the agents may wait in vain
-    // (the result went out before they started): they are killed.
     let agents = [(a1, "agent robot1"), (a2, "agent robot2")]
         .into_iter()
         .filter_map(|(mut a, what)| {
-            if ok && access_control {
+            if ok {
                 return Some(finished(a, what, Duration::from_secs(60)));
             }
             let _ = a.kill();
@@ -487,6 +526,8 @@ fn run_with_rogues(access_control: bool) -> Outcome {
         offline,
         coordinator: printed,
         agents,
+        journal: std::fs::read_to_string(dir.join("coordinator-state/samples.jsonl"))
+            .unwrap_or_default(),
     }
 }
 
@@ -597,6 +638,12 @@ fn three_hosts_configured_as_the_readme_says_calibrate() {
     for (a, robot) in agents {
         let said = finished(a, robot, Duration::from_secs(120));
         assert!(said.contains(&real), "{robot}: {said} (expected {real})");
+        // A clean run: nothing refused, nothing rejected (the access
+        // control's advance decisions for declared keys are no refusals).
+        assert!(
+            !said.contains("access control refused") && !said.contains(": rejected: "),
+            "{robot}: {said}"
+        );
     }
     let start = Instant::now();
     let status = loop {
@@ -610,6 +657,21 @@ fn three_hosts_configured_as_the_readme_says_calibrate() {
         std::thread::sleep(Duration::from_millis(50));
     };
     assert!(status.success(), "the coordinator failed");
+    let mut printed = String::new();
+    for pipe in [
+        run.0.stdout.take().map(|p| Box::new(p) as Box<dyn Read>),
+        run.0.stderr.take().map(|p| Box::new(p) as Box<dyn Read>),
+    ]
+    .into_iter()
+    .flatten()
+    {
+        let mut pipe = pipe;
+        pipe.read_to_string(&mut printed).unwrap();
+    }
+    assert!(
+        !printed.contains("access control refused") && !printed.contains(": rejected: "),
+        "coordinator: {printed}"
+    );
     let live: b2b_protocol::CalibrationResult = serde_json::from_str(
         &std::fs::read_to_string(dir.join("coordinator-host/RESULT.json")).unwrap(),
     )

@@ -3,14 +3,13 @@
 //! arrives or `--seconds` pass; `PREFIX` is `b2b/bench` unless given. Used by
 //! `services/benches/bus.rs` to measure zenoh latency between processes, on the
 //! plain and on the secured bus (where a cart may say things only under its own
-//! keys, so the pong goes there).
+//! keys, so the pong goes there, and every message is signed and checked).
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use b2b_services::bus;
+use b2b_services::bus::{self, Bus};
 use clap::Parser;
-use zenoh::Wait;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -36,27 +35,19 @@ fn main() -> std::process::ExitCode {
     b2b_services::init_logging();
     let cli = Cli::parse();
     b2b_services::run_main(|| {
-        let session = bus::open(bus::config(Some(&cli.zenoh), bus::Role::Agent)?)?;
+        // Through the services' own bus: on a secured configuration every
+        // ping's signature is checked and every pong signed, as the services do.
+        let bus = bus::ZenohBus::open(Some(&cli.zenoh), bus::Role::Agent)?;
         let prefix = &cli.prefix;
         let pong_key = cli.pong.clone().unwrap_or_else(|| format!("{prefix}/pong"));
         let (ping_key, stop_key) = (format!("{prefix}/ping"), format!("{prefix}/stop"));
-        let pong = session
-            .declare_publisher(pong_key)
-            .wait()
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        let ping = session
-            .declare_subscriber(format!("{prefix}/**"))
-            .wait()
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let pings = bus.subscribe(&format!("{prefix}/**"))?;
         let deadline = Instant::now() + Duration::from_secs(cli.seconds);
         while Instant::now() < deadline {
-            if let Ok(Some(sample)) = ping.recv_timeout(Duration::from_millis(100)) {
-                let key = sample.key_expr().as_str();
-                if key == ping_key {
-                    pong.put(sample.payload().clone())
-                        .wait()
-                        .map_err(|e| anyhow::anyhow!("{e}"))?;
-                } else if key == stop_key {
+            if let Some(m) = pings.recv_timeout(Duration::from_millis(100))? {
+                if m.key == ping_key {
+                    bus.put(&pong_key, m.payload)?;
+                } else if m.key == stop_key {
                     break;
                 }
             }
