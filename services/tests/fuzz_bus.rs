@@ -3,7 +3,8 @@
 //! inserted, deleted, truncated; numbers replaced by extreme or wrong-typed
 //! values), under agent and coordinator keys. Whatever decodes then goes into
 //! the coordinator's journal and out as the pipeline's observations. Nothing
-//! may panic; every refusal names the key.
+//! may panic; every refusal names the key. The secured bus's signature check
+//! gets the same treatment on random and mutated attachments.
 
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::Pose;
@@ -262,7 +263,61 @@ proptest! {
         };
         through_the_store(decode_everything(&mutate(&message, &mutations)));
     }
+
+    /// The secured bus's signature check on a peer's attachment: random
+    /// bytes, and a valid signature with bytes flipped, inserted or cut. Never
+    /// a panic; only the untouched signature is believed.
+    #[test]
+    fn signature_attachments_never_panic(
+        random in prop::collection::vec(any::<u8>(), 0..1024),
+        flips in prop::collection::vec((any::<prop::sample::Index>(), 1u8..=255), 0..4),
+        insert in prop::option::of((any::<prop::sample::Index>(), any::<u8>())),
+        cut in prop::option::of(any::<prop::sample::Index>()),
+    ) {
+        let (verifier, signed, payload) = &*SIGNED;
+        prop_assert!(verifier.verify(CAPTURE_KEY, payload, Some(&random)).is_err());
+        let mut a = signed.clone();
+        for (at, bits) in &flips {
+            let i = at.index(a.len());
+            a[i] ^= bits;
+        }
+        if let Some((at, byte)) = insert {
+            let i = at.index(a.len() + 1);
+            a.insert(i, byte);
+        }
+        if let Some(at) = cut {
+            a.truncate(at.index(a.len()));
+        }
+        let verdict = verifier.verify(CAPTURE_KEY, payload, Some(&a));
+        if a == *signed {
+            prop_assert_eq!(verdict.unwrap(), "robot1");
+        } else {
+            prop_assert!(verdict.is_err(), "a changed signature was believed");
+        }
+    }
 }
+
+/// An authority, a message robot1 signed, and its payload (made once).
+static SIGNED: std::sync::LazyLock<(b2b_services::signing::Verifier, Vec<u8>, Vec<u8>)> =
+    std::sync::LazyLock::new(|| {
+        use b2b_services::signing::{Identity, Verifier};
+        let dir = tempfile::tempdir().unwrap();
+        b2b_services::pki::init(
+            dir.path(),
+            &["robot1".to_owned()],
+            &b2b_services::pki::Endpoints::at(b2b_services::pki::DEFAULT_TLS_ENDPOINT).unwrap(),
+        )
+        .unwrap();
+        let me = Identity::from_files(
+            &dir.path().join("robot1.pem"),
+            &dir.path().join("robot1.key"),
+        )
+        .unwrap();
+        let verifier = Verifier::from_file(&dir.path().join("ca.pem")).unwrap();
+        let payload = serde_json::to_vec(&capture()).unwrap();
+        let signed = me.sign(CAPTURE_KEY, &payload).unwrap();
+        (verifier, signed, payload)
+    });
 
 /// The seeds decode as they are, go through the journal into observations,
 /// and a flange pose whose quaternion is not a unit one is refused with the
