@@ -314,11 +314,19 @@ fn collect_and_solve(
         if last_report.elapsed() >= WAIT_REPORT_PERIOD {
             last_report = Instant::now();
             let mut waiting = store.waiting_for(opts.order.as_deref(), opts.robots);
+            // One phrase per robot: the echo joins what the store says of it.
             for r in not_echoing(store, &echoed) {
-                waiting.push(format!(
-                    "{r}: its statuses do not echo this run's session {session} yet (an agent \
-                     of another run, or one that has not heard the coordinator)"
-                ));
+                let echo = format!(
+                    "its statuses do not echo this run's session {session} yet (an agent of \
+                     another run, or one that has not heard the coordinator)"
+                );
+                match waiting.iter_mut().find(|w| w.starts_with(&format!("{r}: "))) {
+                    Some(w) => {
+                        w.push_str(", and ");
+                        w.push_str(&echo);
+                    }
+                    None => waiting.push(format!("{r}: {echo}")),
+                }
             }
             eprintln!("coordinator: waiting for {}", waiting.join("; "));
         }
