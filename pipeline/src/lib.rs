@@ -1152,23 +1152,42 @@ pub fn estimate_intrinsics_from_observations(
             obs.observations.len()
         )));
     }
-    let detection = |o: &Observation| BoardDetection {
+    let views = obs
+        .observations
+        .iter()
+        .map(|o| (capture_name(o), published_detection(o)))
+        .collect();
+    let (camera, estimated) = initial_intrinsics(views, &obs.camera).map_err(estimation)?;
+    let detect_ms = obs.detect_ms + estimated.fit_ms;
+    let refitted = refit_poses(obs, camera, "the intrinsics estimated from the captures");
+    Ok(RobotObservations {
+        detect_ms,
+        estimated_intrinsics: Some(estimated),
+        ..refitted
+    })
+}
+
+/// An observation's corners as a detection (labelled already: as published).
+fn published_detection(o: &Observation) -> BoardDetection {
+    BoardDetection {
         target_points: o.board.target_points.clone(),
         corner_ids: (0..o.board.pixels.len()).collect(),
         pixels: o.board.pixels.clone(),
         method: b2b_vision::checkerboard::CornerMethod::Published,
         refined: true,
-    };
-    let views = obs
-        .observations
-        .iter()
-        .map(|o| (capture_name(o), detection(o)))
-        .collect();
-    let (camera, estimated) = initial_intrinsics(views, &obs.camera).map_err(estimation)?;
+    }
+}
+
+/// The observations with `camera`: every pose fitted again to its corners with
+/// it (a planar target by IPPE + LM, another by the multimarker pose). An
+/// observation whose pose then fails is rejected with the reason, naming the
+/// camera as `which`. What an agent with a provisional camera publishes is
+/// `refit_poses(observations, guess, …)`.
+pub fn refit_poses(obs: RobotObservations, camera: CameraModel, which: &str) -> RobotObservations {
     let mut observations = Vec::with_capacity(obs.observations.len());
     let mut rejected = obs.rejected;
     for o in obs.observations {
-        let det = detection(&o);
+        let det = published_detection(&o);
         let pose = if det.target_points.iter().all(|p| p.z == 0.0) {
             b2b_vision::board_pose(&det, &camera)
         } else {
@@ -1183,25 +1202,20 @@ pub fn estimate_intrinsics_from_observations(
                 ..o
             }),
             Err(e) => rejected.push(RejectedCapture {
-                robot: robot.clone(),
+                robot: obs.robot.clone(),
                 image: o.image.clone(),
                 row: Some(o.row),
-                reason: format!(
-                    "no pose with the intrinsics estimated from the captures: {}",
-                    error_chain(&e)
-                ),
+                reason: format!("no pose with {which}: {}", error_chain(&e)),
             }),
         }
     }
     rejected.sort_by_key(|r| r.row);
-    Ok(RobotObservations {
-        robot: obs.robot,
+    RobotObservations {
         camera,
         observations,
         rejected,
-        detect_ms: obs.detect_ms + estimated.fit_ms,
-        estimated_intrinsics: Some(estimated),
-    })
+        ..obs
+    }
 }
 
 /// [`observe_robot`] for a robot whose dataset gives no intrinsics: detect the

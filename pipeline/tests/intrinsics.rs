@@ -524,20 +524,8 @@ fn observations_made_with_a_guessed_camera_get_their_camera_estimated() {
     // What an agent with a guessed camera would have published: the same
     // corners, the poses from the guess (focal length = the image width).
     let guess = b2b_pipeline::guess_camera(given.camera.width, given.camera.height).unwrap();
-    let mut guessed = given.clone();
-    guessed.camera = guess.clone();
-    for o in &mut guessed.observations {
-        let det = b2b_vision::BoardDetection {
-            target_points: o.board.target_points.clone(),
-            corner_ids: (0..o.board.pixels.len()).collect(),
-            pixels: o.board.pixels.clone(),
-            method: b2b_vision::checkerboard::CornerMethod::Published,
-            refined: true,
-        };
-        o.camera_from_target = b2b_vision::board_pose(&det, &guess)
-            .unwrap()
-            .camera_from_target;
-    }
+    let guessed = b2b_pipeline::refit_poses(given.clone(), guess.clone(), "the guess");
+    assert_eq!(guessed.observations.len(), given.observations.len());
     let fitted = b2b_pipeline::estimate_intrinsics_from_observations(guessed.clone()).unwrap();
     let e = fitted.estimated_intrinsics.as_ref().unwrap();
     eprintln!(

@@ -320,7 +320,10 @@ fn collect_and_solve(
                     "its statuses do not echo this run's session {session} yet (an agent of \
                      another run, or one that has not heard the coordinator)"
                 );
-                match waiting.iter_mut().find(|w| w.starts_with(&format!("{r}: "))) {
+                match waiting
+                    .iter_mut()
+                    .find(|w| w.starts_with(&format!("{r}: ")))
+                {
                     Some(w) => {
                         w.push_str(", and ");
                         w.push_str(&echo);

@@ -51,8 +51,8 @@ pub const ACCESS_CONTROL_TARGET: &str = "zenoh::net::routing::interceptor::acces
 /// trace line for every message it lets through. This layer takes the
 /// refusals alone ("… is unauthorized to …", but not the permissions zenoh
 /// works out in advance for a declared key expression) and writes each to
-/// stderr as a warning: a cart speaking for another, a peer publishing a
-/// result, all named.
+/// stderr as a warning: a cart speaking for another, named with its
+/// certificate and the key.
 #[derive(Debug, Clone, Copy)]
 pub struct AccessRefusals;
 
@@ -73,10 +73,11 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for AccessRefusals {
         let mut m = Message(String::new());
         event.record(&mut m);
         // When a key expression is declared, zenoh works out every permission
-        // for it at once, to cache them ("caching permissions for `K`", then a
-        // decision line per kind of message, on the same thread). Those
-        // decisions refuse no message; a message's own check uses the cache
-        // ("Using cached result: …") or decides for its full key.
+        // for it at once, to cache them ("caching permissions for `K`", then
+        // decision lines for nine kinds of message in a fixed order, the
+        // liveliness subscriber's last, on the same thread). Those decisions
+        // refuse no message; a message's own check uses the cache ("Using
+        // cached result: …") or decides anew.
         thread_local! {
             static CACHING: std::cell::RefCell<Option<String>> =
                 const { std::cell::RefCell::new(None) };
@@ -91,6 +92,11 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for AccessRefusals {
             && let Some((_, key)) = m.0.rsplit_once(" on ")
             && CACHING.with(|c| c.borrow().as_deref() == Some(key))
         {
+            // The batch ends with the liveliness subscriber's decision; a
+            // message on the same key after it is checked for real.
+            if m.0.contains("Declare Liveliness Subscriber (") {
+                CACHING.with(|c| *c.borrow_mut() = None);
+            }
             return;
         }
         if let Some((_, what)) = m.0.split_once(" is unauthorized to ") {

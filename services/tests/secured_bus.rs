@@ -202,9 +202,10 @@ fn assert_journal_signed(journal: &str) {
     }
 }
 
-#[test]
-fn rogue_peers_change_nothing_on_the_secured_bus() {
-    let o = run_with_rogues(true);
+/// The run gave the clean result: the offline one, no capture in conflict,
+/// every journal line signed by its robot, and each real agent took the real
+/// result.
+fn assert_clean(o: &Outcome) {
     let live = o
         .live
         .as_ref()
@@ -216,6 +217,18 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
         o.coordinator
     );
     assert_journal_signed(&o.journal);
+    let t = o.offline.base1_from_base2.t;
+    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
+    assert_eq!(o.agents.len(), 2);
+    for said in &o.agents {
+        assert!(said.contains(&real), "{said} (expected {real})");
+    }
+}
+
+#[test]
+fn rogue_peers_change_nothing_on_the_secured_bus() {
+    let o = run_with_rogues(true);
+    assert_clean(&o);
     // The garbage robot1's certificate sent was logged, counted and survived.
     assert!(
         o.coordinator
@@ -225,7 +238,9 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
         o.coordinator
     );
     // The access control's refusals are logged: robot2's certificate speaking
-    // for robot1, and publishing a result.
+    // for robot1. (Its forged result is refused nowhere: zenoh sends a put
+    // only towards subscribers, and the agents that subscribe to results are
+    // reached through the coordinator, which does not forward between peers.)
     for line in o
         .coordinator
         .lines()
@@ -234,22 +249,14 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
     {
         eprintln!("{line}");
     }
-    for key in ["b2b/agent/robot1/", "b2b/coordinator/result"] {
-        assert!(
-            o.coordinator
-                .lines()
-                .any(|l| l.contains("access control refused") && l.contains(key)),
-            "no refusal of {key} logged: {}",
-            o.coordinator
-        );
-    }
-    // Each real agent received the real result, not the forged one.
-    let t = o.offline.base1_from_base2.t;
-    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
-    assert_eq!(o.agents.len(), 2);
-    for said in &o.agents {
-        assert!(said.contains(&real), "{said} (expected {real})");
-    }
+    let key = "b2b/agent/robot1/";
+    assert!(
+        o.coordinator
+            .lines()
+            .any(|l| l.contains("access control refused") && l.contains(key)),
+        "no refusal of {key} logged: {}",
+        o.coordinator
+    );
 }
 
 /// The same run with every access-control rule removed (TLS still on), as a
@@ -265,17 +272,7 @@ fn rogue_peers_change_nothing_on_the_secured_bus() {
 #[test]
 fn without_access_control_the_signatures_keep_the_rogues_out() {
     let o = run_with_rogues(false);
-    let live = o
-        .live
-        .as_ref()
-        .unwrap_or_else(|| panic!("{}", o.coordinator));
-    assert_same(live, &o.offline);
-    assert!(
-        o.coordinator.contains(" 0 conflicting captures"),
-        "{}",
-        o.coordinator
-    );
-    assert_journal_signed(&o.journal);
+    assert_clean(&o);
     for key in ["b2b/agent/robot1/capture", "b2b/agent/robot1/status"] {
         let said = format!(
             "{key}: rejected: signed with the certificate of 'robot2', but the key is robot1's"
@@ -288,12 +285,6 @@ fn without_access_control_the_signatures_keep_the_rogues_out() {
     }
     // No access-control refusals: there was no rule to refuse by.
     assert!(!o.coordinator.contains("access control refused"));
-    let t = o.offline.base1_from_base2.t;
-    let real = format!("t = [{:.6}, {:.6}, {:.6}] m", t[0], t[1], t[2]);
-    assert_eq!(o.agents.len(), 2);
-    for said in &o.agents {
-        assert!(said.contains(&real), "{said} (expected {real})");
-    }
 }
 
 /// The coordinator killed mid-run on the secured bus and started again with

@@ -486,21 +486,10 @@ fn guessed_observations(
     let ds = Dataset::load(dir).expect("dataset");
     let given = b2b_pipeline::observe_robot(&ds, "robot1").expect("observations");
     let guess = b2b_pipeline::guess_camera(given.camera.width, given.camera.height).expect("guess");
-    let mut guessed = given.clone();
-    guessed.camera = guess.clone();
-    for o in &mut guessed.observations {
-        let det = b2b_vision::BoardDetection {
-            target_points: o.board.target_points.clone(),
-            corner_ids: (0..o.board.pixels.len()).collect(),
-            pixels: o.board.pixels.clone(),
-            method: CornerMethod::Published,
-            refined: true,
-        };
-        o.camera_from_target = b2b_vision::board_pose(&det, &guess)
-            .expect("pose")
-            .camera_from_target;
-    }
-    (guessed, given.camera)
+    let camera = given.camera.clone();
+    let guessed = b2b_pipeline::refit_poses(given, guess, "the guess");
+    assert!(guessed.rejected.is_empty(), "{:?}", guessed.rejected);
+    (guessed, camera)
 }
 
 /// The agent's work after each capture once its camera is being estimated
