@@ -1,5 +1,6 @@
 //! The platform's own certificate authority and the secured bus:
-//! `coordinator pki init --dir DIR --robots robot1,robot2`.
+//! `coordinator pki init --dir DIR --robots robot1,robot2`, then `pki add` for
+//! a further cart and `pki revoke` to replace a lost or stolen key.
 //!
 //! One authority (`ca.pem`, `ca.key`) issues a certificate to the coordinator
 //! and to each cart; a certificate's common name is its holder's id (the robot
@@ -140,43 +141,37 @@ pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> anyhow::Res
     Ok(Issued { files, configs })
 }
 
-/// Adds a cart to the authority in `dir`: its key, certificate and
-/// configuration, and the coordinator's configuration rewritten to let it
-/// speak (the coordinator restarts to read it). The endpoints are the ones
-/// `init` wrote. A cart already there is refused: its certificate cannot be
-/// revoked (see the README on replacing one).
-pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
-    validate_robot_id(robot).with_context(|| format!("--robot '{robot}'"))?;
-    anyhow::ensure!(
-        robot != COORDINATOR,
-        "--robot: '{COORDINATOR}' is the coordinator's name, not a robot id"
-    );
+/// What `add` and `revoke` need of an authority `init` made: the folder,
+/// the authority's key, the robots the coordinator's configuration names, and
+/// the endpoints `init` wrote.
+struct Authority {
+    dir: PathBuf,
+    ca_key: KeyPair,
+    robots: Vec<String>,
+    endpoints: Endpoints,
+}
+
+fn open_authority(dir: &Path) -> anyhow::Result<Authority> {
     let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.to_owned());
     let key_file = dir.join(CA_KEY);
     let ca_key = std::fs::read_to_string(&key_file)
         .with_context(|| format!("cannot read the authority's key {}", key_file.display()))?;
     let ca_key = KeyPair::from_pem(&ca_key)
         .with_context(|| format!("{}: not a private key", key_file.display()))?;
+    let read_config = |file: &Path| -> anyhow::Result<Value> {
+        let text = std::fs::read_to_string(file)
+            .with_context(|| format!("cannot read {}", file.display()))?;
+        serde_json::from_str(&text)
+            .with_context(|| format!("{}: not a configuration `pki init` wrote", file.display()))
+    };
     let coordinator_file = dir.join(format!("{COORDINATOR}.json5"));
-    let text = std::fs::read_to_string(&coordinator_file)
-        .with_context(|| format!("cannot read {}", coordinator_file.display()))?;
-    let config: Value = serde_json::from_str(&text).with_context(|| {
-        format!(
-            "{}: not a configuration `pki init` wrote",
-            coordinator_file.display()
-        )
-    })?;
-    let mut robots: Vec<String> = config["access_control"]["subjects"]
+    let config = read_config(&coordinator_file)?;
+    let robots: Vec<String> = config["access_control"]["subjects"]
         .as_array()
         .into_iter()
         .flatten()
         .filter_map(|s| s["id"].as_str().map(str::to_owned))
         .collect();
-    anyhow::ensure!(
-        !robots.iter().any(|r| r == robot),
-        "'{robot}' already has a certificate from this authority; a certificate cannot be \
-         revoked, so replacing one means starting the trust over (README, \"The secured bus\")"
-    );
     let listen = config["listen"]["endpoints"][0]
         .as_str()
         .with_context(|| format!("{}: no listen endpoint", coordinator_file.display()))?;
@@ -184,30 +179,116 @@ pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
         .first()
         .with_context(|| format!("{}: no robots", coordinator_file.display()))?;
     let cart_file = dir.join(format!("{first}.json5"));
-    let cart: Value = serde_json::from_str(
-        &std::fs::read_to_string(&cart_file)
-            .with_context(|| format!("cannot read {}", cart_file.display()))?,
-    )
-    .with_context(|| {
-        format!(
-            "{}: not a configuration `pki init` wrote",
-            cart_file.display()
-        )
-    })?;
+    let cart = read_config(&cart_file)?;
     let connect = cart["connect"]["endpoints"][0]
         .as_str()
         .with_context(|| format!("{}: no connect endpoint", cart_file.display()))?;
     let endpoints = Endpoints::new(listen, connect)?;
+    Ok(Authority {
+        dir,
+        ca_key,
+        robots,
+        endpoints,
+    })
+}
+
+/// Adds a cart to the authority in `dir`: its key, certificate and
+/// configuration, and the coordinator's configuration rewritten to let it
+/// speak (the coordinator restarts to read it). The endpoints are the ones
+/// `init` wrote. A cart already there is refused (`revoke` replaces its
+/// certificate).
+pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
+    validate_robot_id(robot).with_context(|| format!("--robot '{robot}'"))?;
+    anyhow::ensure!(
+        robot != COORDINATOR,
+        "--robot: '{COORDINATOR}' is the coordinator's name, not a robot id"
+    );
+    let Authority {
+        dir,
+        ca_key,
+        mut robots,
+        endpoints,
+    } = open_authority(dir)?;
+    anyhow::ensure!(
+        !robots.iter().any(|r| r == robot),
+        "'{robot}' already has a certificate from this authority; to replace it, \
+         `coordinator pki revoke --dir {} --robot {robot}`",
+        dir.display()
+    );
     robots.push(robot.to_owned());
     let issuer = Issuer::new(ca_params()?, ca_key);
     let mut files = Vec::new();
     let configs = vec![issue(
         &dir, &issuer, robot, &robots, &endpoints, &mut files,
     )?];
+    let coordinator_file = dir.join(format!("{COORDINATOR}.json5"));
     let text = serde_json::to_string_pretty(&coordinator_config(&dir, &robots, &endpoints))?;
     std::fs::write(&coordinator_file, text + "\n")
         .with_context(|| format!("cannot write {}", coordinator_file.display()))?;
     files.push(coordinator_file);
+    Ok(Issued { files, configs })
+}
+
+/// Revokes `holder`'s certificate (a robot's or the coordinator's) and issues
+/// it a new key and certificate in its place: the old certificate's
+/// fingerprint is appended to [`crate::signing::REVOKED`] beside the
+/// authority's certificate, and every process that reads that list refuses
+/// every message the old key signs (zenoh's TLS keeps no revocation list, so
+/// the old key can still connect, but it can say nothing anyone believes).
+/// Copy the list to every host beside its `ca.pem`, and the new files to the
+/// holder; restart them to read it.
+pub fn revoke(dir: &Path, holder: &str) -> anyhow::Result<Issued> {
+    let Authority {
+        dir,
+        ca_key,
+        robots,
+        endpoints,
+    } = open_authority(dir)?;
+    anyhow::ensure!(
+        holder == COORDINATOR || robots.iter().any(|r| r == holder),
+        "--robot '{holder}': no certificate of that name in {} (it has {COORDINATOR}, {})",
+        dir.display(),
+        robots.join(", ")
+    );
+    let cert_file = dir.join(format!("{holder}.pem"));
+    let der = {
+        use rustls_pki_types::pem::PemObject;
+        rustls_pki_types::CertificateDer::from_pem_file(&cert_file)
+            .with_context(|| format!("{}: not a PEM certificate", cert_file.display()))?
+    };
+    let fingerprint = crate::signing::fingerprint(&der);
+    let list = dir.join(crate::signing::REVOKED);
+    let mut out = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&list)
+        .with_context(|| format!("cannot open {}", list.display()))?;
+    let when = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    writeln!(
+        out,
+        "{fingerprint}  # {holder}, revoked at unix time {when}"
+    )
+    .with_context(|| format!("cannot append to {}", list.display()))?;
+    // The old certificate is kept for the record; its key goes (keys are
+    // written only where none is, so that no key is overwritten by mistake).
+    let kept = dir.join(format!("{holder}.revoked-{when}.pem"));
+    std::fs::rename(&cert_file, &kept)
+        .with_context(|| format!("cannot move {} aside", cert_file.display()))?;
+    let old_key = dir.join(format!("{holder}.key"));
+    match std::fs::remove_file(&old_key) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => {
+            return Err(e).with_context(|| format!("cannot remove {}", old_key.display()));
+        }
+    }
+    let issuer = Issuer::new(ca_params()?, ca_key);
+    let mut files = vec![list, kept];
+    let configs = vec![issue(
+        &dir, &issuer, holder, &robots, &endpoints, &mut files,
+    )?];
     Ok(Issued { files, configs })
 }
 
@@ -472,9 +553,74 @@ mod tests {
             "tls/10.0.0.5:7447"
         );
         let e = add(dir.path(), "robot3").unwrap_err().to_string();
-        assert!(e.contains("already has a certificate"), "{e}");
+        assert!(
+            e.contains("already has a certificate") && e.contains("pki revoke"),
+            "{e}"
+        );
         let e = format!("{:#}", add(&dir.path().join("none"), "robot4").unwrap_err());
         assert!(e.contains("cannot read the authority's key"), "{e}");
+    }
+
+    #[test]
+    fn revoke_lists_the_old_certificate_and_issues_a_new_one() {
+        use crate::signing::{Identity, REVOKED, SigningError, Verifier};
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        init(d, &robots(), &Endpoints::at(DEFAULT_TLS_ENDPOINT).unwrap()).unwrap();
+        let identity = |who: &str| {
+            Identity::from_files(&d.join(format!("{who}.pem")), &d.join(format!("{who}.key")))
+                .unwrap()
+        };
+        let old = identity("robot1");
+        let key = "b2b/agent/robot1/status";
+        let signed_by_old = old.sign(key, b"{}").unwrap();
+        let before = Verifier::from_file(&d.join(CA_CERT)).unwrap();
+        assert_eq!(
+            before.verify(key, b"{}", Some(&signed_by_old)).unwrap(),
+            "robot1"
+        );
+
+        let revoked = revoke(d, "robot1").unwrap();
+        assert!(revoked.files.contains(&d.join(REVOKED)));
+        let list = std::fs::read_to_string(d.join(REVOKED)).unwrap();
+        assert!(list.contains("# robot1, revoked"), "{list}");
+        // The list, read by a new session: the old key's messages are refused,
+        // the new key's taken.
+        let after = Verifier::from_file(&d.join(CA_CERT)).unwrap();
+        assert_eq!(
+            after.verify(key, b"{}", Some(&signed_by_old)),
+            Err(SigningError::Revoked("robot1".into()))
+        );
+        let new = identity("robot1");
+        let signed_by_new = new.sign(key, b"{}").unwrap();
+        assert_eq!(
+            after.verify(key, b"{}", Some(&signed_by_new)).unwrap(),
+            "robot1"
+        );
+        // robot2 and the coordinator are untouched; the coordinator can be
+        // revoked too, and both stay listed.
+        let r2 = identity("robot2")
+            .sign("b2b/agent/robot2/status", b"{}")
+            .unwrap();
+        assert!(
+            after
+                .verify("b2b/agent/robot2/status", b"{}", Some(&r2))
+                .is_ok()
+        );
+        revoke(d, COORDINATOR).unwrap();
+        let list = std::fs::read_to_string(d.join(REVOKED)).unwrap();
+        assert_eq!(list.lines().count(), 2, "{list}");
+        // Unknown holders and broken lists are named.
+        let e = format!("{:#}", revoke(d, "robot9").unwrap_err());
+        assert!(e.contains("robot9") && e.contains("robot1, robot2"), "{e}");
+        std::fs::write(d.join(REVOKED), format!("{list}not-a-fingerprint\n")).unwrap();
+        let e = Verifier::from_file(&d.join(CA_CERT))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(REVOKED) && e.contains("line 3") && e.contains("not-a-fingerprint"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -16,6 +16,10 @@
 //! - the certificate's common name is the sender the key names (the robot of
 //!   `b2b/agent/<robot>/…`, `coordinator` under `b2b/coordinator/…`).
 //!
+//! - the certificate is not revoked: its SHA-256 fingerprint is not listed in
+//!   [`REVOKED`] beside the authority's certificate (`coordinator pki revoke`
+//!   writes it; read when the session opens).
+//!
 //! Anything else is dropped and logged with the reason. The accepted message's
 //! [`crate::bus::Received::signer`] is that common name, and the coordinator's
 //! journal records it with each sample.
@@ -35,6 +39,10 @@ use rustls_pki_types::{CertificateDer, TrustAnchor, UnixTime};
 
 use crate::bus::sender_of;
 
+/// The revocation list beside the authority's certificate: one SHA-256
+/// fingerprint (hex) of a certificate's DER per line, `#` starting a comment.
+pub const REVOKED: &str = "revoked.txt";
+
 /// Prefixes the signed bytes (domain separation).
 pub const DOMAIN: &[u8] = b"b2b-calibration signed message v1\0";
 const VERSION: u8 = 1;
@@ -52,6 +60,8 @@ pub enum SigningError {
     Untrusted(String),
     #[error("the signature does not verify with the certificate of '{0}'")]
     BadSignature(String),
+    #[error("the certificate of '{0}' that signed it is revoked ({REVOKED})")]
+    Revoked(String),
     #[error("signed with the certificate of '{signer}', but the key is {expected}'s")]
     WrongSender { signer: String, expected: String },
     #[error("cannot sign: {0}")]
@@ -77,6 +87,7 @@ impl std::fmt::Debug for Identity {
 /// already checked (by their DER bytes) with their common names.
 pub struct Verifier {
     authority: Vec<u8>,
+    revoked: std::collections::HashSet<String>,
     checked: Mutex<HashMap<Vec<u8>, String>>,
 }
 
@@ -164,6 +175,37 @@ impl Identity {
     }
 }
 
+/// A certificate's SHA-256 fingerprint (of its DER), lower-case hex.
+pub fn fingerprint(der: &[u8]) -> String {
+    ring::digest::digest(&ring::digest::SHA256, der)
+        .as_ref()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// The fingerprints a revocation list names; a line that is not one is an
+/// error naming the line.
+fn read_revoked(text: &str) -> Result<std::collections::HashSet<String>, String> {
+    let mut out = std::collections::HashSet::new();
+    for (i, line) in text.lines().enumerate() {
+        let entry = line.split('#').next().unwrap_or_default().trim();
+        if entry.is_empty() {
+            continue;
+        }
+        let hex = entry.to_ascii_lowercase();
+        if hex.len() != 64 || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
+            return Err(format!(
+                "line {}: expected a SHA-256 fingerprint (64 hex digits), found {:?}",
+                i + 1,
+                entry.chars().take(24).collect::<String>()
+            ));
+        }
+        out.insert(hex);
+    }
+    Ok(out)
+}
+
 fn signed_bytes(key: &str, payload: &[u8]) -> Vec<u8> {
     let mut m = Vec::with_capacity(DOMAIN.len() + key.len() + 1 + payload.len());
     m.extend_from_slice(DOMAIN);
@@ -174,14 +216,22 @@ fn signed_bytes(key: &str, payload: &[u8]) -> Vec<u8> {
 }
 
 impl Verifier {
-    /// Trusts the authority certificate in `path` (PEM).
+    /// Trusts the authority certificate in `path` (PEM), less the
+    /// certificates [`REVOKED`] beside it lists.
     pub fn from_file(path: &Path) -> Result<Verifier, SigningError> {
         let authority = read_certificate(path)?;
         let der = CertificateDer::from(authority.as_slice());
         webpki::anchor_from_trusted_cert(&der)
             .map_err(|e| file_error(path, format!("not a usable authority: {e:?}")))?;
+        let list = path.with_file_name(REVOKED);
+        let revoked = match std::fs::read_to_string(&list) {
+            Ok(text) => read_revoked(&text).map_err(|e| file_error(&list, e))?,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Default::default(),
+            Err(e) => return Err(file_error(&list, e)),
+        };
         Ok(Verifier {
             authority,
+            revoked,
             checked: Mutex::new(HashMap::new()),
         })
     }
@@ -251,6 +301,9 @@ impl Verifier {
         )
         .map_err(|e| SigningError::Untrusted(format!("{e:?}")))?;
         let name = common_name(cert).map_err(SigningError::Untrusted)?;
+        if self.revoked.contains(&fingerprint(cert)) {
+            return Err(SigningError::Revoked(name));
+        }
         if let Ok(mut m) = self.checked.lock() {
             m.insert(cert.to_vec(), name.clone());
         }

@@ -269,6 +269,18 @@ enum PkiCommand {
         #[arg(long)]
         robot: String,
     },
+    /// Revokes a holder's certificate (a lost or stolen key) and issues it a
+    /// new key and certificate: the old certificate goes into DIR/revoked.txt,
+    /// and every process with that list beside its ca.pem refuses every
+    /// message the old key signs.
+    Revoke {
+        /// The folder `pki init` wrote (with the authority's key).
+        #[arg(long)]
+        dir: PathBuf,
+        /// Whose certificate: a robot id, or `coordinator`.
+        #[arg(long)]
+        robot: String,
+    },
 }
 
 fn print_issued(issued: &b2b_services::pki::Issued, dir: &std::path::Path) {
@@ -542,6 +554,19 @@ fn main() -> std::process::ExitCode {
             print_issued(&issued, &dir);
             println!(
                 "restart the coordinator with its rewritten configuration to let {robot} speak"
+            );
+            Ok(())
+        }
+        Command::Pki {
+            command: PkiCommand::Revoke { dir, robot },
+        } => {
+            let issued = b2b_services::pki::revoke(&dir, &robot)?;
+            print_issued(&issued, &dir);
+            println!(
+                "{robot}'s old certificate is listed in {}: copy that file beside ca.pem on \
+                 every host, and {robot}'s new key, certificate and configuration to {robot}; \
+                 restart them",
+                dir.join(b2b_services::signing::REVOKED).display()
             );
             Ok(())
         }
