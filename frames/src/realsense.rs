@@ -615,13 +615,28 @@ fn time_ns(f: &impl FrameEx, latency_ns: u64) -> u64 {
     }
 }
 
-/// realsense-rust deletes a running pipeline without stopping it, and a
-/// looping playback's thread can then outlive what it reads (one CI run of the
-/// playback bench crashed as it ended). The pipeline is stopped first.
+/// realsense-rust deletes a running pipeline without stopping it, so the
+/// pipeline is stopped first. Stopping a played-back recording also leaves
+/// librealsense finishing the playback device's stop on a detached thread
+/// (`playback_device::stop_internal`, which reads the recording's device
+/// description again and logs). A process that exits meanwhile destroys
+/// librealsense's static logger under that thread, which then crashes: a core
+/// of the playback bench, which failed a CI run as it ended, shows exactly
+/// that, the main thread in `exit` and the detached thread in the logger. So
+/// a dropped playback waits [`PLAYBACK_STOP_GRACE`] for that thread; a live
+/// camera has no such thread and does not wait.
 impl Drop for RealSense {
     fn drop(&mut self) {
         if let Some(pipeline) = self.pipeline.take() {
             drop(pipeline.stop());
+            if self.playback {
+                std::thread::sleep(PLAYBACK_STOP_GRACE);
+            }
         }
     }
 }
+
+/// How long a dropped playback waits for librealsense's detached stop thread
+/// ([`RealSense`]'s `Drop`): it takes milliseconds; this leaves room for a
+/// loaded machine.
+pub const PLAYBACK_STOP_GRACE: Duration = Duration::from_millis(500);
