@@ -251,11 +251,7 @@ pub fn revoke(dir: &Path, holder: &str) -> anyhow::Result<Issued> {
         robots.join(", ")
     );
     let cert_file = dir.join(format!("{holder}.pem"));
-    let der = {
-        use rustls_pki_types::pem::PemObject;
-        rustls_pki_types::CertificateDer::from_pem_file(&cert_file)
-            .with_context(|| format!("{}: not a PEM certificate", cert_file.display()))?
-    };
+    let der = crate::signing::read_certificate(&cert_file)?;
     let fingerprint = crate::signing::fingerprint(&der);
     let list = dir.join(crate::signing::REVOKED);
     let mut out = std::fs::OpenOptions::new()

@@ -111,7 +111,8 @@ fn file_error(path: &Path, reason: impl std::fmt::Display) -> SigningError {
     }
 }
 
-fn read_certificate(path: &Path) -> Result<Vec<u8>, SigningError> {
+/// A PEM certificate file's DER.
+pub(crate) fn read_certificate(path: &Path) -> Result<Vec<u8>, SigningError> {
     CertificateDer::from_pem_file(path)
         .map(|c| c.as_ref().to_vec())
         .map_err(|e| file_error(path, format!("not a PEM certificate: {e}")))
@@ -119,27 +120,31 @@ fn read_certificate(path: &Path) -> Result<Vec<u8>, SigningError> {
 
 /// The common name of a certificate (DER).
 pub fn common_name(der: &[u8]) -> Result<String, String> {
+    name_and_key(der).map(|(name, _)| name)
+}
+
+/// A certificate's common name and its raw public key, from one parse.
+fn name_and_key(der: &[u8]) -> Result<(String, Vec<u8>), String> {
     let (_, cert) =
         x509_parser::parse_x509_certificate(der).map_err(|e| format!("not a certificate: {e}"))?;
-    cert.subject()
+    let name = cert
+        .subject()
         .iter_common_name()
         .next()
         .and_then(|cn| cn.as_str().ok())
         .map(str::to_owned)
-        .ok_or_else(|| "the certificate has no common name".to_owned())
+        .ok_or_else(|| "the certificate has no common name".to_owned())?;
+    Ok((name, cert.public_key().subject_public_key.data.to_vec()))
 }
 
 impl Identity {
     /// Reads a certificate and its private key (PEM files).
     pub fn from_files(certificate: &Path, key: &Path) -> Result<Identity, SigningError> {
         let der = read_certificate(certificate)?;
-        let name = common_name(&der).map_err(|e| file_error(certificate, e))?;
+        let (name, public) = name_and_key(&der).map_err(|e| file_error(certificate, e))?;
         let pem = std::fs::read_to_string(key).map_err(|e| file_error(key, e))?;
         let key_pair = KeyPair::from_pem(&pem)
             .map_err(|e| file_error(key, format!("not a private key: {e}")))?;
-        let public = x509_parser::parse_x509_certificate(&der)
-            .map(|(_, c)| c.public_key().subject_public_key.data.to_vec())
-            .map_err(|e| file_error(certificate, e))?;
         if public != key_pair.public_key_raw() {
             return Err(file_error(
                 key,
