@@ -461,10 +461,12 @@ impl Validate for AgentStatus {
 pub struct DriftAlarm {
     /// The robot whose base moved against the reference's.
     pub robot: String,
-    /// The reference robot (the result's first).
+    /// The reference robot (the result's first), or `scene` when the robot
+    /// was watched through the scene's depth features (no target in view).
     pub reference: String,
     /// How far the target moved in the reference base, seen through this
-    /// robot's observations (m).
+    /// robot's observations (m); watched through the scene, how far the
+    /// scene's centre moved in the robot's base.
     pub shift_m: f64,
     /// How far it turned (rad).
     pub turn_rad: f64,

@@ -639,15 +639,23 @@ pub fn run_watch(
     state_dir: &Path,
     source: &mut crate::live::LiveSource,
     period: Duration,
+    observe: crate::live::WatchObserve,
     stop: &AtomicBool,
 ) -> anyhow::Result<u64> {
     b2b_protocol::messages::validate_robot_id(robot)?;
     let seq = Sequence::open(state_dir, robot)?;
     let key = agent_key(robot, WATCH_TOPIC);
     let mut published = 0u64;
-    source.watch(period, stop, &mut |cap| {
-        if let Err(r) = &cap.observed {
-            tracing::warn!("{robot}: watch frame without the target: {}", r.reason);
+    source.watch(period, observe, stop, &mut |cap| {
+        match (&cap.observed, &cap.features) {
+            (Err(r), None) => tracing::warn!(
+                "{robot}: watch frame without the target or features: {}",
+                r.reason
+            ),
+            (Err(r), Some(_)) if observe != crate::live::WatchObserve::Features => {
+                tracing::debug!("{robot}: watch frame without the target: {}", r.reason)
+            }
+            _ => {}
         }
         let envelope = Envelope::new(robot, seq.take()?, capture_message(&cap));
         bus::publish(bus, &key, &envelope)?;

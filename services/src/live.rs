@@ -192,6 +192,30 @@ pub struct LiveTimings {
 }
 
 /// The live source.
+/// What `agent watch` observes at its watch pose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WatchObserve {
+    /// The target only.
+    Target,
+    /// The scene's features lifted with the depth frame only (as where no
+    /// target is left in view).
+    Features,
+    /// Both: the coordinator watches the target while it is in view and the
+    /// scene's features where it is not.
+    Auto,
+}
+
+impl WatchObserve {
+    pub fn parse(s: &str) -> anyhow::Result<Self> {
+        match s {
+            "target" => Ok(WatchObserve::Target),
+            "features" => Ok(WatchObserve::Features),
+            "auto" => Ok(WatchObserve::Auto),
+            other => anyhow::bail!("--observe {other}: expected target, features or auto"),
+        }
+    }
+}
+
 pub struct LiveSource {
     cfg: LiveConfig,
     fri: FriClient,
@@ -437,6 +461,7 @@ impl LiveSource {
     pub fn watch(
         &mut self,
         period: Duration,
+        observe: WatchObserve,
         stop: &AtomicBool,
         deliver: &mut dyn FnMut(SourceCapture) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
@@ -459,7 +484,30 @@ impl LiveSource {
             match self.watch_frame(after_ns) {
                 Ok((frame, q, t)) => {
                     after_ns = frame.timestamp_ns + 1;
-                    let (capture, _) = self.look(&frame, &q, t, row, &progress);
+                    let capture = match observe {
+                        WatchObserve::Target => self.look(&frame, &q, t, row, &progress).0,
+                        WatchObserve::Auto => {
+                            let (mut capture, _) = self.look(&frame, &q, t, row, &progress);
+                            capture.features = self.features(&frame);
+                            capture
+                        }
+                        // No target detection: the frame's time goes to its features.
+                        WatchObserve::Features => SourceCapture {
+                            index: row as u64 - 1,
+                            image: Some(format!("frame {}", frame.number)),
+                            base_from_flange: self.arm.fk(&q),
+                            controller_time_s: Some(t),
+                            camera: frame.camera.clone(),
+                            intrinsics_estimated: !frame.intrinsics_given,
+                            observed: Err(self.reject(
+                                row,
+                                "watching the scene's features, not the target".into(),
+                            )),
+                            pixels: None,
+                            features: self.features(&frame),
+                            target_centre: self.target.centre(),
+                        },
+                    };
                     deliver(capture)?;
                 }
                 Err(e) => {

@@ -10,6 +10,19 @@
 //! the result and its covariance, then a CUSUM). An alarm goes out on
 //! `b2b/coordinator/alarm`, on stderr and into the recording; each pair alarms
 //! once.
+//!
+//! Where no target is left in view, an agent's observation carries the scene's
+//! local features lifted with its depth frame instead (`agent watch --observe
+//! auto|features`). Each robot is then watched against the scene itself: its
+//! first such frame is the scene's reference; each later one is matched to it
+//! (RANSAC + Umeyama over the lifted points, as the RGB-D method pairs views),
+//! which says where the reference camera is now, and through the robot's
+//! reported flange pose and hand-eye, where the scene is in the robot's base.
+//! A still cart sees the scene where it was; a moved cart sees it moved by the
+//! cart's motion. The scene's shift at its centre goes to the same sequential
+//! test, with no result covariance to test against (the baseline is the scene
+//! as the watch began). Every robot, the reference included, is watched so;
+//! its alarm names `scene` as what it moved against.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -19,9 +32,13 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use b2b_calib::Iso3;
 use b2b_calib::drift::{DriftEvent, DriftOptions, PairWatch, innovation};
+use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, fit_camera_pair};
 use b2b_protocol::CalibrationResult;
-use b2b_protocol::messages::{COORDINATOR, Capture, DriftAlarm, Envelope, agent_key, alarm_key};
-use nalgebra::{Matrix6, Point3};
+use b2b_protocol::messages::{
+    COORDINATOR, Capture, DriftAlarm, Envelope, FeatureSet, agent_key, alarm_key,
+};
+use b2b_vision::features::match_features;
+use nalgebra::{Matrix6, Point3, Vector3};
 
 use crate::agent::{Sequence, WATCH_TOPIC};
 use crate::bus::{self, Bus};
@@ -61,7 +78,12 @@ pub enum WatchEvent {
         needed: usize,
     },
     /// The baseline is set and agrees with the result (`chi2` of its misfit).
-    Armed { robot: String, chi2: f64 },
+    /// `against`: the reference robot, or [`SCENE`].
+    Armed {
+        robot: String,
+        against: String,
+        chi2: f64,
+    },
     /// Tested: `z` of this observation and the CUSUM after it.
     Watching { robot: String, z: f64, cusum: f64 },
     /// A move.
@@ -69,7 +91,7 @@ pub enum WatchEvent {
 }
 
 /// The decisions of the watch, without the bus: observations in, events out.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct Watcher {
     reference: String,
     options: DriftOptions,
@@ -80,6 +102,25 @@ pub struct Watcher {
     /// The reference robot's latest target pose in its base, when it arrived,
     /// and the target's centre (in the target frame).
     latest_reference: Option<(Instant, Iso3, Point3<f64>)>,
+    /// Per robot watched through the scene's features.
+    scenes: BTreeMap<String, SceneWatch>,
+    /// How scene frames are matched (the RGB-D method's settings).
+    rgbd: RgbdOptions,
+}
+
+/// What [`SCENE`] alarms name as the reference: the scene itself.
+pub const SCENE: &str = "scene";
+
+/// One robot watched through the scene's features.
+#[derive(Debug)]
+struct SceneWatch {
+    /// The scene's reference frame: its features and lifted points.
+    reference: RgbdView,
+    /// Where the reference camera was, in the robot's base.
+    base_from_camera: Iso3,
+    /// The lifted points' centroid, in the reference camera.
+    centre: Point3<f64>,
+    test: PairWatch,
 }
 
 impl Watcher {
@@ -123,6 +164,8 @@ impl Watcher {
             pairs: BTreeMap::new(),
             alarmed: BTreeMap::new(),
             latest_reference: None,
+            scenes: BTreeMap::new(),
+            rgbd: RgbdOptions::default(),
         })
     }
 
@@ -146,6 +189,9 @@ impl Watcher {
             return skipped("not a robot of the result".into());
         };
         let Some(o) = &capture.observation else {
+            if let Some(set) = &capture.features {
+                return self.observe_scene(robot, capture, set);
+            }
             return skipped(format!(
                 "no target in frame {}: {}",
                 capture.index,
@@ -202,7 +248,105 @@ impl Watcher {
             .pairs
             .entry(robot.to_owned())
             .or_insert_with(|| PairWatch::new(options, &covariance, &(reference_pose * centre)));
-        match pair.update(&d) {
+        let event = pair.update(&d);
+        let reference = self.reference.clone();
+        self.decide(robot, &reference, event)
+    }
+
+    /// A frame of `robot` without the target, with the scene's features.
+    fn observe_scene(&mut self, robot: &str, capture: &Capture, set: &FeatureSet) -> WatchEvent {
+        let skipped = |why: String| WatchEvent::Skipped {
+            robot: robot.to_owned(),
+            why,
+        };
+        if self.alarmed.contains_key(robot) {
+            return skipped("alarm already raised".into());
+        }
+        let Some(model) = self.robots.get(robot) else {
+            return skipped("not a robot of the result".into());
+        };
+        let Ok(base_from_flange) = capture.base_from_flange.to_isometry("T_base_flange") else {
+            return skipped("a pose that is not a rigid transform".into());
+        };
+        let row = capture.index as usize + 1;
+        let image = capture.image.clone().unwrap_or_default();
+        let view = match RgbdView::from_feature_set(row, image, base_from_flange, set) {
+            Ok(v) => v,
+            Err(e) => return skipped(format!("features of frame {}: {e}", capture.index)),
+        };
+        let base_from_camera = base_from_flange * model.flange_from_camera;
+        let Some(scene) = self.scenes.get_mut(robot) else {
+            let lifted: Vec<Vector3<f64>> =
+                view.points.iter().flatten().map(|p| p.coords).collect();
+            let need = self.rgbd.min_inliers;
+            if lifted.len() < need {
+                return skipped(format!(
+                    "frame {}: {} features with depth, the scene's reference needs {need}",
+                    capture.index,
+                    lifted.len()
+                ));
+            }
+            let centre = Point3::from(lifted.iter().sum::<Vector3<f64>>() / lifted.len() as f64);
+            let test = PairWatch::new(
+                self.options,
+                &Matrix6::zeros(),
+                &(base_from_camera * centre),
+            );
+            self.scenes.insert(
+                robot.to_owned(),
+                SceneWatch {
+                    reference: view,
+                    base_from_camera,
+                    centre,
+                    test,
+                },
+            );
+            return skipped(format!(
+                "frame {} is the scene's reference ({} features with depth)",
+                capture.index,
+                lifted.len()
+            ));
+        };
+        let matches = match match_features(
+            &scene.reference.features,
+            &view.features,
+            &self.rgbd.features,
+        ) {
+            Ok(m) => m,
+            Err(e) => return skipped(format!("frame {}: matching: {e}", capture.index)),
+        };
+        let (then, now): (Vec<_>, Vec<_>) = matches
+            .iter()
+            .filter_map(|m| {
+                match (
+                    scene.reference.points.get(m.index1),
+                    view.points.get(m.index2),
+                ) {
+                    (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
+                    _ => None,
+                }
+            })
+            .unzip();
+        let fit = match fit_camera_pair(&then, &now, &self.rgbd) {
+            Ok(f) => f,
+            Err(e) => {
+                return skipped(format!(
+                    "frame {} against the scene's reference: {e}",
+                    capture.index
+                ));
+            }
+        };
+        // The reference camera's frame (the scene) as the robot places it now.
+        let base_from_scene = base_from_camera * fit.camera1_from_camera2.inverse();
+        let d = innovation(&base_from_scene, &scene.base_from_camera, &scene.centre);
+        let event = scene.test.update(&d);
+        self.decide(robot, SCENE, event)
+    }
+
+    /// The watch's event for a sequential test's outcome; an alarm is kept.
+    fn decide(&mut self, robot: &str, reference: &str, event: DriftEvent) -> WatchEvent {
+        let options = self.options;
+        match event {
             DriftEvent::Learning { seen, needed } => WatchEvent::Learning {
                 robot: robot.to_owned(),
                 seen,
@@ -210,6 +354,7 @@ impl Watcher {
             },
             DriftEvent::Armed { chi2, .. } => WatchEvent::Armed {
                 robot: robot.to_owned(),
+                against: reference.to_owned(),
                 chi2,
             },
             DriftEvent::Watching { z, g } => WatchEvent::Watching {
@@ -230,7 +375,11 @@ impl Watcher {
                 } else {
                     (g, options.h)
                 };
-                let why = if against_result {
+                let why = if against_result && reference == SCENE {
+                    format!(
+                        "its first observations disagree with the scene's reference frame (chi2 {statistic:.1} > {threshold:.1}): moved while the watch began"
+                    )
+                } else if against_result {
                     format!(
                         "its first observations disagree with the result (chi2 {statistic:.1} > {threshold:.1}): moved before the watch began, or the result is off"
                     )
@@ -239,15 +388,19 @@ impl Watcher {
                 };
                 let alarm = DriftAlarm {
                     robot: robot.to_owned(),
-                    reference: self.reference.clone(),
+                    reference: reference.to_owned(),
                     shift_m,
                     turn_rad,
                     against_result,
                     statistic,
                     threshold,
                     message: format!(
-                        "ALARM: cart {robot} moved against {}: the target shifted {:.2} mm and turned {:.3} deg ({why}); re-calibrate before going on",
-                        self.reference,
+                        "ALARM: cart {robot} moved against {reference}: the {} shifted {:.2} mm and turned {:.3} deg ({why}); re-calibrate before going on",
+                        if reference == SCENE {
+                            "scene"
+                        } else {
+                            "target"
+                        },
                         shift_m * 1e3,
                         turn_rad.to_degrees()
                     ),
@@ -373,10 +526,23 @@ pub fn watch_command(
                     eprintln!("{robot}: learning the baseline ({needed} observations)");
                 }
             }
-            WatchEvent::Armed { robot, chi2 } => eprintln!(
-                "{robot}: armed; its misfit against the result: chi2 {chi2:.1} (limit {:.1})",
-                opts.drift.result_chi2
-            ),
+            WatchEvent::Armed {
+                robot,
+                against,
+                chi2,
+            } => {
+                if against == SCENE {
+                    eprintln!(
+                        "{robot}: armed on the scene's features; the baseline's misfit against the scene's reference frame: chi2 {chi2:.1} (limit {:.1})",
+                        opts.drift.result_chi2
+                    )
+                } else {
+                    eprintln!(
+                        "{robot}: armed; its misfit against the result: chi2 {chi2:.1} (limit {:.1})",
+                        opts.drift.result_chi2
+                    )
+                }
+            }
             WatchEvent::Watching { robot, z, cusum } => {
                 let entry = summary.entry(robot.clone()).or_insert((0, 0.0));
                 entry.0 += 1;
@@ -506,5 +672,115 @@ mod tests {
             WatchEvent::Learning { seen: 1, .. }
         ));
         assert!(w.alarms().is_empty());
+    }
+
+    /// A scene of `n` points in front of the camera with random ORB descriptors.
+    fn scene(n: usize, rng: &mut rand::rngs::StdRng) -> (Vec<Point3<f64>>, Vec<u8>) {
+        use rand::Rng;
+        let points = (0..n)
+            .map(|_| {
+                Point3::new(
+                    rng.random_range(-0.3..0.3),
+                    rng.random_range(-0.2..0.2),
+                    rng.random_range(0.5..1.0),
+                )
+            })
+            .collect();
+        let descriptors = (0..n * 32).map(|_| rng.random()).collect();
+        (points, descriptors)
+    }
+
+    /// A frame without the target: the scene's points as the camera sees them
+    /// (`camera_from_scene`), each with 0.05 mm of noise.
+    fn scene_frame(
+        index: u64,
+        (points, descriptors): &(Vec<Point3<f64>>, Vec<u8>),
+        camera_from_scene: &Iso3,
+        rng: &mut rand::rngs::StdRng,
+    ) -> Capture {
+        use rand::Rng;
+        let mut c = capture(index, false);
+        let seen: Vec<Point3<f64>> = points
+            .iter()
+            .map(|p| {
+                camera_from_scene * p
+                    + Vector3::from_fn(|_, _| rng.random_range(-0.05e-3..0.05e-3) * 3f64.sqrt())
+            })
+            .collect();
+        c.features = Some(FeatureSet {
+            kind: "orb".into(),
+            pixels: seen
+                .iter()
+                .map(|p| [320.0 + 600.0 * p.x / p.z, 240.0 + 600.0 * p.y / p.z])
+                .collect(),
+            responses: vec![1.0; points.len()],
+            points_camera: seen.iter().map(|p| Some([p.x, p.y, p.z])).collect(),
+            descriptor_len: 32,
+            descriptors: descriptors.clone(),
+        });
+        c
+    }
+
+    /// Where no target is in view, each robot (the reference too) is watched
+    /// against the scene's first frame: a still cart arms and stays quiet, a
+    /// cart moved by 1 mm alarms within three frames, naming the scene.
+    #[test]
+    fn the_scene_watch_arms_on_a_still_scene_and_alarms_on_a_moved_cart() {
+        use rand::SeedableRng;
+        let mut result = older_result();
+        result.reference = Some("robot1".into());
+        let mut w = Watcher::new(&result, DriftOptions::default(), Duration::from_secs(2)).unwrap();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let scene = scene(200, &mut rng);
+        let t0 = Instant::now();
+        let still = Iso3::identity();
+        for robot in ["robot1", "robot2"] {
+            assert!(
+                why(w.observe(robot, t0, &scene_frame(0, &scene, &still, &mut rng)))
+                    .contains("the scene's reference (200 features with depth)")
+            );
+            for k in 1..=20 {
+                let event = w.observe(robot, t0, &scene_frame(k, &scene, &still, &mut rng));
+                match (k, event) {
+                    (20, WatchEvent::Armed { against, chi2, .. }) => {
+                        assert_eq!(against, SCENE);
+                        assert!(chi2 < 22.46, "{chi2}");
+                    }
+                    (1..20, WatchEvent::Learning { seen, .. }) => assert_eq!(seen, k as usize),
+                    (_, other) => panic!("frame {k} of {robot}: {other:?}"),
+                }
+            }
+        }
+        for k in 21..100 {
+            for robot in ["robot1", "robot2"] {
+                let event = w.observe(robot, t0, &scene_frame(k, &scene, &still, &mut rng));
+                assert!(matches!(event, WatchEvent::Watching { .. }), "{event:?}");
+            }
+        }
+        // Robot 2's cart moves 1 mm along its base's x; its flange pose (here
+        // the base's origin) and hand-eye are as before, so the camera sees
+        // the scene moved by the inverse of the cart's move.
+        let flange_from_camera = w.robots["robot2"].flange_from_camera;
+        let moved = Iso3::translation(1e-3, 0.0, 0.0);
+        let camera_from_scene = flange_from_camera.inverse() * moved.inverse() * flange_from_camera;
+        let mut alarm = None;
+        for k in 100..103 {
+            if let WatchEvent::Alarm(a) = w.observe(
+                "robot2",
+                t0,
+                &scene_frame(k, &scene, &camera_from_scene, &mut rng),
+            ) {
+                alarm = Some((k, a));
+                break;
+            }
+        }
+        let (k, a) = alarm.expect("no alarm within three frames of the move");
+        assert_eq!(k, 102, "the CUSUM alarms on the third frame, not before");
+        assert_eq!((a.robot.as_str(), a.reference.as_str()), ("robot2", SCENE));
+        assert!((0.8e-3..1.2e-3).contains(&a.shift_m), "{a:?}");
+        assert!(a.message.contains("moved against scene"), "{}", a.message);
+        // The other cart stays quiet.
+        let event = w.observe("robot1", t0, &scene_frame(103, &scene, &still, &mut rng));
+        assert!(matches!(event, WatchEvent::Watching { .. }), "{event:?}");
     }
 }

@@ -18,7 +18,7 @@ use anyhow::Context;
 use b2b_calib::camera::CameraModel;
 use b2b_robot::{Arm, Joints};
 use b2b_sim::Iso3;
-use b2b_sim::render::{RenderSettings, Renderer};
+use b2b_sim::render::Renderer;
 use b2b_sim::scene::Scene;
 use b2b_sim::sensor::{DepthImage, GreyImage, expose};
 use kuka_fri::{SimConfig, SimServer, SimServerConfig};
@@ -58,7 +58,15 @@ pub struct CartOptions {
     pub idle_timeout: Duration,
     /// A folder the cart watches for commands ([`bump_file`]).
     pub control: Option<PathBuf>,
+    /// The shortest time between two frames: a camera exposes at its frame
+    /// rate, and a renderer left to run as fast as it can would take the
+    /// machine from the processes it simulates for (see [`FRAME_PERIOD`]).
+    pub frame_period: Duration,
 }
+
+/// The simulated camera's frame period: 15 frames per second, a RealSense
+/// colour stream's lower setting.
+pub const FRAME_PERIOD: Duration = Duration::from_nanos(1_000_000_000 / 15);
 
 /// The command file that bumps `robot`'s cart: a pose `{"t": [x, y, z],
 /// "rpy_deg": [r, p, y]}` (metres, degrees) by which the cart's base moves, in
@@ -146,13 +154,16 @@ pub fn run_cart(
     })
     .with_context(|| format!("cannot start the FRI server on {}", opts.bind))?;
 
-    let mut settings = RenderSettings::ideal();
-    settings.lighting = scene.lighting.clone();
-    settings.optics = scene.optics.clone();
+    let settings = scene.render_settings();
     let mut rest: Option<(Joints, Iso3)> = None;
     let mut number = 0u64;
     let outcome = (|| -> anyhow::Result<()> {
+        let mut next_frame = Instant::now();
         while !stop.load(Ordering::SeqCst) {
+            if let Some(wait) = next_frame.checked_duration_since(Instant::now()) {
+                std::thread::sleep(wait);
+            }
+            next_frame = Instant::now() + opts.frame_period;
             let s = fri.snapshot();
             if s.heard.unwrap_or(started).elapsed() > opts.idle_timeout {
                 tracing::info!("cart: client silent for {:?}; stopping", opts.idle_timeout);

@@ -129,6 +129,7 @@ fn main() -> std::process::ExitCode {
                     send_period_ms: 5,
                     idle_timeout: Duration::from_secs(5),
                     control,
+                    frame_period: cart::FRAME_PERIOD,
                 };
                 cart::run_cart(&opts, &mut sink, &stop)?;
                 Ok(())

@@ -34,7 +34,7 @@ use b2b_robot::{Arm, IkOptions};
 use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng as _, SeedableRng};
 
-use crate::render::{RenderSettings, Renderer, SceneGeometry};
+use crate::render::{Renderer, SceneGeometry};
 use crate::robot_error::RobotInstance;
 use crate::scene::Scene;
 use crate::sensor::{expose, expose_rgb};
@@ -272,14 +272,12 @@ pub fn generate_scene(
                     .as_ref()
                     .is_none_or(|only| only.contains(&k));
                 let camera_from_world = (world_from_base[r] * base_from_camera).inverse();
-                let mut settings = RenderSettings::ideal();
-                settings.lighting = scene.lighting.clone();
+                let mut settings = scene.render_settings();
                 if scene.lux_per_viewpoint {
                     settings.lighting.lux = scene.lux_levels[rep];
                 } else if !scene.lux_levels.is_empty() {
                     settings.lighting.lux = scene.lux_levels[k % scene.lux_levels.len()];
                 }
-                settings.optics = scene.optics.clone();
                 settings.colour = scene.colour;
                 let mut geo = geometry.clone();
                 if let Some(occ) = &scene.occluders

@@ -360,6 +360,11 @@ pub struct Scene {
     /// When given, a RealSense-like depth image is written with every capture.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth: Option<DepthModel>,
+    /// Samples per pixel over continuously varying textures
+    /// ([`crate::render::RenderSettings::varying_samples`]; default 13). Fewer
+    /// render a textured scene faster and its texture with more aliasing.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub texture_samples: Option<usize>,
 }
 
 impl Scene {
@@ -559,7 +564,24 @@ impl Scene {
             d.validate()
                 .map_err(|e| bad("depth", crate::error::chain(&e)))?;
         }
+        if let Some(n) = self.texture_samples
+            && !(1..=1000).contains(&n)
+        {
+            return Err(bad("texture_samples", format!("{n} (expected 1 to 1000)")));
+        }
         Ok(())
+    }
+
+    /// How this scene is rendered: ideal settings with its lighting, optics
+    /// and texture samples.
+    pub fn render_settings(&self) -> crate::render::RenderSettings {
+        let mut settings = crate::render::RenderSettings::ideal();
+        settings.lighting = self.lighting.clone();
+        settings.optics = self.optics.clone();
+        if let Some(n) = self.texture_samples {
+            settings.varying_samples = n;
+        }
+        settings
     }
 
     fn validate_board(b: &BoardSpec, file: &Path) -> Result<(), SimError> {

@@ -13,6 +13,7 @@ use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::{HandEyeChoice, RobotCamera, hand_eye, load_dataset, observe_robot};
 use b2b_routine::{Mode, RoutineConfig};
 use b2b_services::agent::{AgentOptions, BusArgs, run_agent, run_replay, run_watch};
+use b2b_services::live::WatchObserve;
 use b2b_services::outputs::{print_agent_result, print_hand_eye, print_plan};
 use b2b_services::recording::{RerunArgs, finish_recording, log_hand_eye_run};
 use b2b_services::setup::{Cart, LiveArgs, connect};
@@ -116,6 +117,15 @@ enum Command {
         /// Stop after this many seconds (default: until Ctrl-C).
         #[arg(long, value_parser = positive)]
         duration_s: Option<f64>,
+        /// What to observe: `target`; `features` (the scene's local features
+        /// lifted with the depth frame, for where no target is left in view);
+        /// `auto` (both: the coordinator watches the target while it is in view,
+        /// else the features). Features need a camera with depth.
+        #[arg(long, default_value = "auto")]
+        observe: String,
+        /// The kind of those features: sift, akaze or orb.
+        #[arg(long, default_value = "sift")]
+        features: String,
         #[command(flatten)]
         bus: BusArgs,
         #[command(flatten)]
@@ -265,6 +275,7 @@ fn main() -> std::process::ExitCode {
                         &state_dir,
                         &mut source,
                         period,
+                        WatchObserve::Auto,
                         &stop,
                     ))
                 }
@@ -283,11 +294,18 @@ fn main() -> std::process::ExitCode {
             fri,
             hz,
             duration_s,
+            observe,
+            features,
             bus,
             live,
         } => {
+            let observe = WatchObserve::parse(&observe)?;
+            let features = match observe {
+                WatchObserve::Target => None,
+                _ => Some(FeatureKind::parse(&features)?),
+            };
             let cart = Cart::from_flags(sim.as_deref(), fri.as_deref())?;
-            let (mut source, _cart) = connect(&robot, cart, &live, Mode::Program, None)?;
+            let (mut source, _cart) = connect(&robot, cart, &live, Mode::Program, features)?;
             let zenoh = b2b_services::bus::ZenohBus::open(
                 bus.zenoh.as_deref(),
                 b2b_services::bus::Role::Agent,
@@ -306,6 +324,7 @@ fn main() -> std::process::ExitCode {
                 &bus.state_dir,
                 &mut source,
                 Duration::from_secs_f64(1.0 / hz),
+                observe,
                 &stop,
             )?;
             eprintln!("{robot}: {n} watch observations published");
