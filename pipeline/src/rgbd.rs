@@ -321,6 +321,39 @@ pub fn lift_matches(
     (p1, p2)
 }
 
+/// Two views' matched features whose ends both have a lifted point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewMatches {
+    /// Matches before lifting.
+    pub matches: usize,
+    /// The lifted matches' points in the first view's camera ...
+    pub points1: Vec<Point3<f64>>,
+    /// ... and in the second's.
+    pub points2: Vec<Point3<f64>>,
+}
+
+/// Matches two views' features ([`match_features`]) and keeps the matches
+/// whose ends both have a lifted point.
+pub fn match_views(
+    a: &RgbdView,
+    b: &RgbdView,
+    options: &RgbdOptions,
+) -> Result<ViewMatches, PipelineError> {
+    let matches = match_features(&a.features, &b.features, &options.features)?;
+    let (points1, points2) = matches
+        .iter()
+        .filter_map(|m| match (a.points.get(m.index1), b.points.get(m.index2)) {
+            (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
+            _ => None,
+        })
+        .unzip();
+    Ok(ViewMatches {
+        matches: matches.len(),
+        points1,
+        points2,
+    })
+}
+
 /// A robust `camera1_from_camera2` from matched 3-D points.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CameraPairFit {
@@ -722,15 +755,12 @@ pub fn rgbd_from_views(
                 accepted: false,
                 reason: None,
             };
-            let matches = match_features(&a.features, &b.features, &options.features)?;
-            pe.matches = matches.len();
-            let (p1, p2): (Vec<_>, Vec<_>) = matches
-                .iter()
-                .filter_map(|m| match (a.points.get(m.index1), b.points.get(m.index2)) {
-                    (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
-                    _ => None,
-                })
-                .unzip();
+            let ViewMatches {
+                matches,
+                points1: p1,
+                points2: p2,
+            } = match_views(a, b, options)?;
+            pe.matches = matches;
             pe.lifted = p1.len();
             match fit_camera_pair(&p1, &p2, options) {
                 Ok(fit) => {

@@ -32,12 +32,11 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use b2b_calib::Iso3;
 use b2b_calib::drift::{DriftEvent, DriftOptions, PairWatch, innovation};
-use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, fit_camera_pair};
+use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, fit_camera_pair, match_views};
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
     COORDINATOR, Capture, DriftAlarm, Envelope, FeatureSet, agent_key, alarm_key,
 };
-use b2b_vision::features::match_features;
 use nalgebra::{Matrix6, Point3, Vector3};
 
 use crate::agent::{Sequence, WATCH_TOPIC};
@@ -307,27 +306,11 @@ impl Watcher {
                 lifted.len()
             ));
         };
-        let matches = match match_features(
-            &scene.reference.features,
-            &view.features,
-            &self.rgbd.features,
-        ) {
+        let matched = match match_views(&scene.reference, &view, &self.rgbd) {
             Ok(m) => m,
             Err(e) => return skipped(format!("frame {}: matching: {e}", capture.index)),
         };
-        let (then, now): (Vec<_>, Vec<_>) = matches
-            .iter()
-            .filter_map(|m| {
-                match (
-                    scene.reference.points.get(m.index1),
-                    view.points.get(m.index2),
-                ) {
-                    (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
-                    _ => None,
-                }
-            })
-            .unzip();
-        let fit = match fit_camera_pair(&then, &now, &self.rgbd) {
+        let fit = match fit_camera_pair(&matched.points1, &matched.points2, &self.rgbd) {
             Ok(f) => f,
             Err(e) => {
                 return skipped(format!(
