@@ -4,7 +4,7 @@
 //! the seed paper's ground truth) and by the RGB-D feature method (3-D matches
 //! from depth, many of them wrong, hence RANSAC).
 
-use nalgebra::{Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rand::{SeedableRng, rngs::StdRng, seq::index::sample};
 
 use crate::pose::nearest_rotation;
@@ -37,6 +37,14 @@ pub fn fit_weighted(
     if n < 3 {
         return Err(CalibError::TooFewCaptures { got: n, need: 3 });
     }
+    check_finite(points_in_a, points_in_b)?;
+    umeyama(points_in_a, points_in_b, weights)
+}
+
+fn check_finite(
+    points_in_a: &[Point3<f64>],
+    points_in_b: &[Point3<f64>],
+) -> Result<(), CalibError> {
     if points_in_a
         .iter()
         .chain(points_in_b)
@@ -44,33 +52,52 @@ pub fn fit_weighted(
     {
         return Err(CalibError::NonFinite("point set".into()));
     }
+    Ok(())
+}
+
+/// The weighted least-squares rigid fit of finite point sets of equal length.
+fn umeyama(
+    points_in_a: &[Point3<f64>],
+    points_in_b: &[Point3<f64>],
+    weights: Option<&[f64]>,
+) -> Result<Iso3, CalibError> {
+    let n = points_in_a.len();
     let w = |i: usize| weights.map_or(1.0, |w| w[i]);
-    let wsum: f64 = (0..n).map(w).sum();
+    let (mut wsum, mut sa, mut sb) = (0.0, Vector3::zeros(), Vector3::zeros());
+    for i in 0..n {
+        let wi = w(i);
+        wsum += wi;
+        sa += points_in_a[i].coords * wi;
+        sb += points_in_b[i].coords * wi;
+    }
     if wsum <= 0.0 {
         return Err(CalibError::ZeroWeightSum);
     }
-    let ca: Vector3<f64> = (0..n)
-        .map(|i| points_in_a[i].coords * w(i))
-        .sum::<Vector3<f64>>()
-        / wsum;
-    let cb: Vector3<f64> = (0..n)
-        .map(|i| points_in_b[i].coords * w(i))
-        .sum::<Vector3<f64>>()
-        / wsum;
+    let (ca, cb): (Vector3<f64>, Vector3<f64>) = (sa / wsum, sb / wsum);
     let mut h = Matrix3::zeros();
     for i in 0..n {
         h += w(i) * (points_in_a[i].coords - ca) * (points_in_b[i].coords - cb).transpose();
     }
     // Collinear or coincident points leave a rotation about their line free.
-    let sv = h.svd(false, false).singular_values;
-    let mut s: Vec<f64> = sv.iter().copied().collect();
+    let svd = h.svd(true, true);
+    let mut s: Vec<f64> = svd.singular_values.iter().copied().collect();
     s.sort_by(|a, b| b.total_cmp(a));
     if s[0] <= 1e-18 || s[1] <= 1e-9 * s[0] {
         return Err(CalibError::DegeneratePoints(
             "points are coincident or collinear".into(),
         ));
     }
-    let r: UnitQuaternion<f64> = nearest_rotation(&h);
+    // The rotation nearest `h` ([`nearest_rotation`]) from the same SVD.
+    let r: UnitQuaternion<f64> = match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => {
+            let mut d = Matrix3::identity();
+            if (u * v_t).determinant() < 0.0 {
+                d[(2, 2)] = -1.0;
+            }
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(u * d * v_t))
+        }
+        _ => nearest_rotation(&h),
+    };
     let t = ca - r * cb;
     Ok(Iso3::from_parts(Translation3::from(t), r))
 }
@@ -80,10 +107,16 @@ pub fn fit_weighted(
 pub struct RansacOptions {
     /// Inlier distance (m).
     pub threshold: f64,
+    /// The most samples drawn.
     pub iterations: usize,
     /// Smallest consensus accepted.
     pub min_inliers: usize,
     pub seed: u64,
+    /// Sampling stops once an all-inlier sample has been drawn with this
+    /// probability, judged by the best consensus so far (the usual adaptive
+    /// count `ln(1 - p) / ln(1 - w³)` for inlier share `w`); 1 draws all
+    /// `iterations`.
+    pub confidence: f64,
 }
 
 impl Default for RansacOptions {
@@ -93,7 +126,26 @@ impl Default for RansacOptions {
             iterations: 1000,
             min_inliers: 6,
             seed: 0,
+            confidence: 0.9999,
         }
+    }
+}
+
+/// Samples of three needed to draw one of inliers only with probability
+/// `confidence`, when a share `w` of the pairs are inliers.
+fn samples_needed(w: f64, confidence: f64, most: usize) -> usize {
+    let all_inliers = w.clamp(0.0, 1.0).powi(3);
+    if confidence >= 1.0 || all_inliers <= 0.0 {
+        return most;
+    }
+    if all_inliers >= 1.0 {
+        return 1;
+    }
+    let n = (1.0 - confidence).ln() / (1.0 - all_inliers).ln();
+    if n.is_finite() {
+        (n.ceil().max(1.0) as usize).min(most)
+    } else {
+        most
     }
 }
 
@@ -127,27 +179,42 @@ pub fn ransac_rigid(
             need: 3.max(options.min_inliers),
         });
     }
+    check_finite(points_in_a, points_in_b)?;
     let mut rng = StdRng::seed_from_u64(options.seed);
-    let count = |m: &Iso3| -> Vec<bool> {
+    // Squared residuals under a model, through its rotation matrix (cheaper
+    // per point than the quaternion).
+    let residuals2 = |m: &Iso3| {
+        let r = m.rotation.to_rotation_matrix().into_inner();
+        let t = m.translation.vector;
         (0..n)
-            .map(|i| (points_in_a[i] - m * points_in_b[i]).norm() <= options.threshold)
-            .collect()
+            .map(move |i| (points_in_a[i].coords - (r * points_in_b[i].coords + t)).norm_squared())
     };
-    let mut best: Option<Vec<bool>> = None;
+    let threshold2 = options.threshold * options.threshold;
+    let count = |m: &Iso3| -> Vec<bool> { residuals2(m).map(|e| e <= threshold2).collect() };
+    let consensus = |m: &Iso3| -> usize { residuals2(m).filter(|e| *e <= threshold2).count() };
+    let mut best: Option<Iso3> = None;
     let mut best_n = 0;
-    for _ in 0..options.iterations {
+    let mut needed = options.iterations;
+    let mut drawn = 0;
+    while drawn < needed {
+        drawn += 1;
         let idx = sample(&mut rng, n, 3);
         let a: Vec<_> = idx.iter().map(|i| points_in_a[i]).collect();
         let b: Vec<_> = idx.iter().map(|i| points_in_b[i]).collect();
-        let Ok(m) = fit_rigid(&a, &b) else { continue };
-        let inl = count(&m);
-        let k = inl.iter().filter(|v| **v).count();
+        let Ok(m) = umeyama(&a, &b, None) else {
+            continue;
+        };
+        let k = consensus(&m);
         if k > best_n {
             best_n = k;
-            best = Some(inl);
+            best = Some(m);
+            needed = samples_needed(k as f64 / n as f64, options.confidence, options.iterations);
         }
     }
-    let Some(mut inliers) = best.filter(|_| best_n >= options.min_inliers) else {
+    let Some(mut inliers) = best
+        .filter(|_| best_n >= options.min_inliers)
+        .map(|m| count(&m))
+    else {
         return Err(CalibError::NoConsensus {
             best: best_n,
             total: n,
@@ -156,29 +223,36 @@ pub fn ransac_rigid(
     };
     // Refit on the consensus, then once more on the refit's consensus.
     let mut model = Iso3::identity();
+    // The inliers' squared residuals under `model`, once known.
+    let mut sse = None;
     for _ in 0..2 {
-        let a: Vec<_> = (0..n)
-            .filter(|i| inliers[*i])
-            .map(|i| points_in_a[i])
-            .collect();
-        let b: Vec<_> = (0..n)
-            .filter(|i| inliers[*i])
-            .map(|i| points_in_b[i])
-            .collect();
-        model = fit_rigid(&a, &b)?;
-        let next = count(&model);
+        let weights: Vec<f64> = inliers.iter().map(|&k| f64::from(u8::from(k))).collect();
+        model = umeyama(points_in_a, points_in_b, Some(&weights))?;
+        let (next, next_sse) =
+            residuals2(&model).fold((Vec::with_capacity(n), 0.0), |(mut mask, sum), e| {
+                mask.push(e <= threshold2);
+                (mask, if e <= threshold2 { sum + e } else { sum })
+            });
         if next.iter().filter(|v| **v).count() < options.min_inliers {
             break;
         }
+        // The same consensus again: a refit on it gives the same model.
+        let settled = next == inliers;
         inliers = next;
+        if settled {
+            sse = Some(next_sse);
+            break;
+        }
     }
     let k = inliers.iter().filter(|v| **v).count() as f64;
-    let rms = ((0..n)
-        .filter(|i| inliers[*i])
-        .map(|i| (points_in_a[i] - model * points_in_b[i]).norm_squared())
-        .sum::<f64>()
-        / k)
-        .sqrt();
+    let sse = sse.unwrap_or_else(|| {
+        residuals2(&model)
+            .zip(&inliers)
+            .filter(|(_, k)| **k)
+            .map(|(e, _)| e)
+            .sum::<f64>()
+    });
+    let rms = (sse / k).sqrt();
     Ok(RansacFit {
         a_from_b: model,
         inliers,
@@ -246,6 +320,18 @@ mod tests {
         // A plain fit is ruined by the same outliers.
         let (dt_plain, _) = pose_distance(&fit_rigid(&a, &b).unwrap(), &truth);
         assert!(dt_plain > 10.0 * dt);
+    }
+
+    /// The adaptive count: one sample when all pairs agree, the textbook
+    /// count for half of them (ln 0.01 / ln 0.875 = 34.5 at 99%), and the cap
+    /// when nothing agrees or every sample is asked for.
+    #[test]
+    fn samples_needed_follows_the_inlier_share() {
+        assert_eq!(samples_needed(1.0, 0.9999, 2000), 1);
+        assert_eq!(samples_needed(0.5, 0.99, 2000), 35);
+        assert_eq!(samples_needed(0.1, 0.9999, 2000), 2000);
+        assert_eq!(samples_needed(0.0, 0.9999, 2000), 2000);
+        assert_eq!(samples_needed(0.5, 1.0, 2000), 2000);
     }
 
     #[test]

@@ -90,6 +90,7 @@ impl Default for RgbdOptions {
                 iterations: 2000,
                 min_inliers: 3,
                 seed: 0,
+                confidence: 0.9999,
             },
             min_inliers: 20,
             depth_jump_rel: 0.02,

@@ -610,12 +610,81 @@ fn bench_live_intrinsics(c: &mut Criterion) {
     g.finish();
 }
 
+/// The scene watch's decision per observation (`coordinator watch` on a
+/// frame without the target): robot 1's first view of the RGB-D set as the
+/// scene's reference and the same view with its camera moved by 1 mm, as a
+/// still scene seen from a bumped cart. Ours: the features matched and the
+/// lifted matches' rigid fit (RANSAC + Umeyama); the peer, on the same
+/// matches: OpenCV's `estimateAffine3D` (RANSAC, 5 mm, 0.99). Both are
+/// checked to find the move first, in smoke mode too.
+fn bench_scene_watch(c: &mut Criterion) {
+    use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, fit_camera_pair, load_views, match_views};
+    let name = "sim-rgbd-boxes-2x5";
+    let ds = Dataset::load(&dataset_dir(name)).expect(name);
+    let options = RgbdOptions::default();
+    let views = load_views(&ds, "robot1", &options).expect("views").views;
+    let reference = &views[0];
+    // The camera moved by 1 mm: every point is seen 1 mm the other way.
+    let camera_then_from_now = Iso3::translation(1e-3, 0.0, 0.0);
+    let mut set = reference.to_feature_set().expect("feature set");
+    for p in set.points_camera.iter_mut().flatten() {
+        let q = camera_then_from_now.inverse() * nalgebra::Point3::from(*p);
+        *p = [q.x, q.y, q.z];
+    }
+    let now = RgbdView::from_feature_set(2, String::new(), reference.base_from_flange, &set)
+        .expect("moved view");
+    let decide = || {
+        let m = match_views(reference, &now, &options).expect("matching");
+        fit_camera_pair(&m.points1, &m.points2, &options).expect("fit")
+    };
+    let fit = decide();
+    let (dt, _) = pose_distance(&fit.camera1_from_camera2, &camera_then_from_now);
+    let matched = match_views(reference, &now, &options).expect("matching");
+    eprintln!(
+        "scene_watch/{name}: {} features, {} matched with depth; ours {:.4} mm from the move",
+        reference.features.len(),
+        matched.points1.len(),
+        dt * 1e3
+    );
+    assert!(dt < 1e-6, "ours: {dt} m from the move");
+    let to_cv = |points: &[nalgebra::Point3<f64>]| -> Vector<Point3d> {
+        points.iter().map(|p| Point3d::new(p.x, p.y, p.z)).collect()
+    };
+    let (src, dst) = (to_cv(&matched.points2), to_cv(&matched.points1));
+    let opencv_fit = || -> Mat {
+        let mut out = Mat::default();
+        let mut inliers = Mat::default();
+        calib3d::estimate_affine_3d(&src, &dst, &mut out, &mut inliers, 0.005, 0.99)
+            .expect("estimateAffine3D");
+        out
+    };
+    let out = opencv_fit();
+    let tx = *out.at_2d::<f64>(0, 3).expect("3x4");
+    assert!((tx - 1e-3).abs() < 1e-6, "OpenCV: tx {tx}");
+    let mut g = c.benchmark_group(format!("scene_watch/{name}"));
+    g.bench_function("ours match+fit", |b| b.iter(|| black_box(decide())));
+    g.bench_function("ours fit", |b| {
+        b.iter(|| {
+            fit_camera_pair(
+                black_box(&matched.points1),
+                black_box(&matched.points2),
+                &options,
+            )
+            .expect("fit")
+        })
+    });
+    g.bench_function("opencv estimateAffine3D", |b| {
+        b.iter(|| black_box(opencv_fit()))
+    });
+    g.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default()
         .sample_size(10)
         .warm_up_time(Duration::from_secs(1))
         .measurement_time(Duration::from_secs(10));
-    targets = bench_offline, bench_live_intrinsics
+    targets = bench_offline, bench_live_intrinsics, bench_scene_watch
 }
 criterion_main!(benches);
