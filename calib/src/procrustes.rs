@@ -190,7 +190,14 @@ pub fn ransac_rigid(
             .map(move |i| (points_in_a[i].coords - (r * points_in_b[i].coords + t)).norm_squared())
     };
     let threshold2 = options.threshold * options.threshold;
-    let count = |m: &Iso3| -> Vec<bool> { residuals2(m).map(|e| e <= threshold2).collect() };
+    // Which pairs are inliers under a model, and their squared residuals' sum.
+    let count = |m: &Iso3| -> (Vec<bool>, f64) {
+        residuals2(m).fold((Vec::with_capacity(n), 0.0), |(mut mask, sum), e| {
+            let inlier = e <= threshold2;
+            mask.push(inlier);
+            (mask, if inlier { sum + e } else { sum })
+        })
+    };
     let consensus = |m: &Iso3| -> usize { residuals2(m).filter(|e| *e <= threshold2).count() };
     let mut best: Option<Iso3> = None;
     let mut best_n = 0;
@@ -213,7 +220,7 @@ pub fn ransac_rigid(
     }
     let Some(mut inliers) = best
         .filter(|_| best_n >= options.min_inliers)
-        .map(|m| count(&m))
+        .map(|m| count(&m).0)
     else {
         return Err(CalibError::NoConsensus {
             best: best_n,
@@ -228,11 +235,7 @@ pub fn ransac_rigid(
     for _ in 0..2 {
         let weights: Vec<f64> = inliers.iter().map(|&k| f64::from(u8::from(k))).collect();
         model = umeyama(points_in_a, points_in_b, Some(&weights))?;
-        let (next, next_sse) =
-            residuals2(&model).fold((Vec::with_capacity(n), 0.0), |(mut mask, sum), e| {
-                mask.push(e <= threshold2);
-                (mask, if e <= threshold2 { sum + e } else { sum })
-            });
+        let (next, next_sse) = count(&model);
         if next.iter().filter(|v| **v).count() < options.min_inliers {
             break;
         }

@@ -492,21 +492,16 @@ impl LiveSource {
                             capture
                         }
                         // No target detection: the frame's time goes to its features.
-                        WatchObserve::Features => SourceCapture {
-                            index: row as u64 - 1,
-                            image: Some(format!("frame {}", frame.number)),
-                            base_from_flange: self.arm.fk(&q),
-                            controller_time_s: Some(t),
-                            camera: frame.camera.clone(),
-                            intrinsics_estimated: !frame.intrinsics_given,
-                            observed: Err(self.reject(
+                        WatchObserve::Features => {
+                            let observed = Err(self.reject(
                                 row,
                                 "watching the scene's features, not the target".into(),
-                            )),
-                            pixels: None,
-                            features: self.features(&frame),
-                            target_centre: self.target.centre(),
-                        },
+                            ));
+                            let mut capture =
+                                self.frame_capture(&frame, self.arm.fk(&q), t, row, observed);
+                            capture.features = self.features(&frame);
+                            capture
+                        }
                     };
                     deliver(capture)?;
                 }
@@ -645,7 +640,7 @@ impl LiveSource {
         row: usize,
         progress: &Progress,
     ) -> (SourceCapture, View) {
-        let camera = frame.camera.clone();
+        let camera = &frame.camera;
         let base_from_flange = self.arm.fk(q);
         let detect_started = Instant::now();
         let expected = self.expected_view(&base_from_flange, Some(progress));
@@ -679,19 +674,32 @@ impl LiveSource {
             board,
             sharpness,
         };
-        let capture = SourceCapture {
+        let capture = self.frame_capture(frame, base_from_flange, controller_t, row, observed);
+        (capture, view)
+    }
+
+    /// A still frame's capture as it would be delivered, with what was observed
+    /// in it (no features: [`Self::features`] adds them).
+    fn frame_capture(
+        &self,
+        frame: &LiveFrame,
+        base_from_flange: Iso3,
+        controller_t: f64,
+        row: usize,
+        observed: Result<Observation, RejectedCapture>,
+    ) -> SourceCapture {
+        SourceCapture {
             index: row as u64 - 1,
             image: Some(format!("frame {}", frame.number)),
             base_from_flange,
             controller_time_s: Some(controller_t),
-            camera,
+            camera: frame.camera.clone(),
             intrinsics_estimated: !frame.intrinsics_given,
             observed,
             pixels: Some(frame.grey.clone()),
             features: None,
             target_centre: self.target.centre(),
-        };
-        (capture, view)
+        }
     }
 
     /// The RGB-D method's features of a visit's final frame, delivered or

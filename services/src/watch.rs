@@ -189,7 +189,8 @@ impl Watcher {
         };
         let Some(o) = &capture.observation else {
             if let Some(set) = &capture.features {
-                return self.observe_scene(robot, capture, set);
+                let flange_from_camera = model.flange_from_camera;
+                return self.observe_scene(robot, capture, set, &flange_from_camera);
             }
             return skipped(format!(
                 "no target in frame {}: {}",
@@ -252,8 +253,15 @@ impl Watcher {
         self.decide(robot, &reference, event)
     }
 
-    /// A frame of `robot` without the target, with the scene's features.
-    fn observe_scene(&mut self, robot: &str, capture: &Capture, set: &FeatureSet) -> WatchEvent {
+    /// A frame of `robot` (a robot of the result) without the target, with
+    /// the scene's features.
+    fn observe_scene(
+        &mut self,
+        robot: &str,
+        capture: &Capture,
+        set: &FeatureSet,
+        flange_from_camera: &Iso3,
+    ) -> WatchEvent {
         let skipped = |why: String| WatchEvent::Skipped {
             robot: robot.to_owned(),
             why,
@@ -261,9 +269,6 @@ impl Watcher {
         if self.alarmed.contains_key(robot) {
             return skipped("alarm already raised".into());
         }
-        let Some(model) = self.robots.get(robot) else {
-            return skipped("not a robot of the result".into());
-        };
         let Ok(base_from_flange) = capture.base_from_flange.to_isometry("T_base_flange") else {
             return skipped("a pose that is not a rigid transform".into());
         };
@@ -273,7 +278,7 @@ impl Watcher {
             Ok(v) => v,
             Err(e) => return skipped(format!("features of frame {}: {e}", capture.index)),
         };
-        let base_from_camera = base_from_flange * model.flange_from_camera;
+        let base_from_camera = base_from_flange * flange_from_camera;
         let Some(scene) = self.scenes.get_mut(robot) else {
             let lifted: Vec<Vector3<f64>> =
                 view.points.iter().flatten().map(|p| p.coords).collect();

@@ -637,9 +637,9 @@ fn bench_scene_watch(c: &mut Criterion) {
         let m = match_views(reference, &now, &options).expect("matching");
         fit_camera_pair(&m.points1, &m.points2, &options).expect("fit")
     };
-    let fit = decide();
-    let (dt, _) = pose_distance(&fit.camera1_from_camera2, &camera_then_from_now);
     let matched = match_views(reference, &now, &options).expect("matching");
+    let fit = fit_camera_pair(&matched.points1, &matched.points2, &options).expect("fit");
+    let (dt, _) = pose_distance(&fit.camera1_from_camera2, &camera_then_from_now);
     eprintln!(
         "scene_watch/{name}: {} features, {} matched with depth; ours {:.4} mm from the move",
         reference.features.len(),
