@@ -194,8 +194,14 @@ impl Default for RefineOptions {
 pub enum NoiseShape {
     /// Isotropic rotation and translation in one frame (2 parameters).
     Isotropic(NoiseFrame),
-    /// Rotations about the base origin and about the flange, and a translation
-    /// (3 parameters): joint errors near the base and near the wrist together.
+    /// Rotations about a point on the base's z axis and about the flange, and
+    /// a translation (4 parameters: three variances and the point's height).
+    /// Encoder errors of a serial arm turn it about its joints: those near
+    /// the base about points on the first joint's axis, which is the base's z
+    /// axis by convention (ISO 9787), those of the wrist about the flange. The
+    /// height is where the first joints' rotations balance (the shoulder and
+    /// above, with the elbow's share); it is found by likelihood, so a base
+    /// that rocks about its origin gives zero.
     TwoCentres,
     /// Given per capture ([`NoiseModel::PerCapture`]).
     Given,
@@ -214,7 +220,7 @@ impl NoiseShape {
     fn n_params(&self) -> f64 {
         match self {
             NoiseShape::Isotropic(_) => 2.0,
-            NoiseShape::TwoCentres => 3.0,
+            NoiseShape::TwoCentres => 4.0,
             NoiseShape::Given => 0.0,
         }
     }
@@ -222,7 +228,7 @@ impl NoiseShape {
     pub fn name(&self) -> String {
         match self {
             NoiseShape::Isotropic(f) => format!("isotropic about the {}", f.name()),
-            NoiseShape::TwoCentres => "rotations about base and flange".into(),
+            NoiseShape::TwoCentres => "rotations about the base axis and the flange".into(),
             NoiseShape::Given => "given per capture".into(),
         }
     }
@@ -240,6 +246,9 @@ pub struct FittedNoise {
     pub sigma_t_m: f64,
     /// Corner noise of this robot's camera (px, per axis).
     pub sigma_px: f64,
+    /// The height on the base's z axis (m) of the point the base-side
+    /// rotations turn about (0: the base origin).
+    pub centre_height_m: f64,
 }
 
 impl FittedNoise {
@@ -253,6 +262,7 @@ impl FittedNoise {
             sigma_r_rad: ((d[0] + d[1] + d[2]) / 3.0).max(0.0).sqrt(),
             sigma_t_m: ((d[3] + d[4] + d[5]) / 3.0).max(0.0).sqrt(),
             sigma_px,
+            centre_height_m: 0.0,
         }
     }
 
@@ -271,10 +281,22 @@ impl FittedNoise {
             .iter()
             .zip(&self.components)
             .map(|(f, c)| {
-                let s = f.to_base_left(base_from_flange);
+                let s = frame_map(*f, base_from_flange, self.centre_height_m);
                 s * c * s.transpose()
             })
             .fold(Matrix6::zeros(), |a, b| a + b)
+    }
+}
+
+/// The map from an error in `frame` to the left perturbation of
+/// `base_from_flange`, with the base frame's rotations about the point
+/// `centre_height` up its z axis.
+fn frame_map(frame: NoiseFrame, base_from_flange: &Iso3, centre_height: f64) -> Matrix6<f64> {
+    match frame {
+        NoiseFrame::Base if centre_height != 0.0 => {
+            crate::pose::adjoint(&Iso3::translation(0.0, 0.0, centre_height))
+        }
+        _ => frame.to_base_left(base_from_flange),
     }
 }
 
@@ -419,9 +441,20 @@ struct Engine {
     whitening: Option<Vec<Whitening>>,
     /// The noise model per robot, once estimated.
     noise: Vec<FittedNoise>,
-    /// Per robot and noise shape, the components its EM last ended at.
-    shape_cache: Vec<(usize, NoiseShape, Vec<Matrix6<f64>>)>,
+    /// Per robot and noise shape, where its EM last ended.
+    shape_cache: Vec<ShapeFit>,
     params: DVector<f64>,
+}
+
+/// One robot's noise shape as its EM last ended: the starting point of the
+/// next round's.
+#[derive(Debug, Clone)]
+struct ShapeFit {
+    robot: usize,
+    shape: NoiseShape,
+    components: Vec<Matrix6<f64>>,
+    /// The base-side rotations' centre height (m), for shapes that have one.
+    height: f64,
 }
 
 /// `C^{-1/2} = (I + Q diag(d) Qᵀ) / σ` for a capture's residual covariance
@@ -940,28 +973,45 @@ impl Engine {
                         let cached = self
                             .shape_cache
                             .iter()
-                            .find(|(r, s, _)| *r == robot && *s == shape)
-                            .map(|(_, _, c)| c.clone());
-                        let starts = cached.unwrap_or_else(|| vec![start; shape.frames().len()]);
-                        let (components, ll) = em_components(&mine, shape, sigma2, starts, 100);
+                            .find(|c| c.robot == robot && c.shape == shape)
+                            .cloned();
+                        let (components, ll, height) = if shape == NoiseShape::TwoCentres {
+                            let starts = cached.as_ref().map_or_else(
+                                || vec![start; shape.frames().len()],
+                                |c| c.components.clone(),
+                            );
+                            fit_centre_height(&mine, sigma2, starts, cached.map(|c| c.height))
+                        } else {
+                            let starts = cached.map_or_else(
+                                || vec![start; shape.frames().len()],
+                                |c| c.components,
+                            );
+                            let (c, ll) = em_components(&mine, shape, sigma2, starts, 100, 0.0);
+                            (c, ll, 0.0)
+                        };
+                        let entry = ShapeFit {
+                            robot,
+                            shape,
+                            components: components.clone(),
+                            height,
+                        };
                         match self
                             .shape_cache
                             .iter_mut()
-                            .find(|(r, s, _)| *r == robot && *s == shape)
+                            .find(|c| c.robot == robot && c.shape == shape)
                         {
-                            Some(entry) => entry.2 = components.clone(),
-                            None => self.shape_cache.push((robot, shape, components.clone())),
+                            Some(c) => *c = entry,
+                            None => self.shape_cache.push(entry),
                         }
                         let score = ll - shape.n_params() * penalty;
                         if best.as_ref().is_none_or(|(l, _)| score > *l) {
-                            best = Some((
-                                score,
-                                FittedNoise::new(
-                                    shape,
-                                    components.into_iter().map(|c| c * dof_factor).collect(),
-                                    sigma2.sqrt(),
-                                ),
-                            ));
+                            let mut fitted = FittedNoise::new(
+                                shape,
+                                components.into_iter().map(|c| c * dof_factor).collect(),
+                                sigma2.sqrt(),
+                            );
+                            fitted.centre_height_m = height;
+                            best = Some((score, fitted));
                         }
                     }
                     best.map(|(_, f)| f).unwrap_or(FittedNoise::isotropic(
@@ -1063,6 +1113,71 @@ impl Engine {
     }
 }
 
+/// [`NoiseShape::TwoCentres`]'s components and the height of its base-side
+/// centre by maximum likelihood, with the log-likelihood. The first round
+/// searches the height over plus and minus the captures' reach (a grid of
+/// seven, then a golden section over the cells either side of the best, to
+/// a few centimetres, where the likelihood is flat; each EM shortened and
+/// started where the last ended); later rounds keep it, since the fit moves
+/// little between rounds.
+fn fit_centre_height(
+    spans: &[&Span],
+    sigma2: f64,
+    start: Vec<Matrix6<f64>>,
+    previous: Option<f64>,
+) -> (Vec<Matrix6<f64>>, f64, f64) {
+    let shape = NoiseShape::TwoCentres;
+    if let Some(h) = previous {
+        let (components, ll) = em_components(spans, shape, sigma2, start, 100, h);
+        return (components, ll, h);
+    }
+    let reach = spans
+        .iter()
+        .map(|s| s.base_from_flange.translation.vector.norm())
+        .fold(0.0, f64::max)
+        .max(0.1);
+    let cell = reach / 3.0;
+    let mut warm = start;
+    let mut eval = |h: f64| {
+        let (c, ll) = em_components(spans, shape, sigma2, warm.clone(), 6, h);
+        warm = c;
+        ll
+    };
+    let mut centre = (f64::NEG_INFINITY, 0.0);
+    for i in -3..=3 {
+        let h = f64::from(i) * cell;
+        let ll = eval(h);
+        if ll > centre.0 {
+            centre = (ll, h);
+        }
+    }
+    // Golden section on the cells either side of the grid's best.
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut a, mut b) = (centre.1 - cell, centre.1 + cell);
+    let mut x1 = b - g * (b - a);
+    let mut x2 = a + g * (b - a);
+    let mut f1 = eval(x1);
+    let mut f2 = eval(x2);
+    for _ in 0..5 {
+        if f1 >= f2 {
+            b = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = b - g * (b - a);
+            f1 = eval(x1);
+        } else {
+            a = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = a + g * (b - a);
+            f2 = eval(x2);
+        }
+    }
+    let h = 0.5 * (a + b);
+    let (components, ll) = em_components(spans, shape, sigma2, warm, 100, h);
+    (components, ll, h)
+}
+
 /// The median of chi-square with 6 degrees of freedom.
 const CHI2_6_MEDIAN: f64 = 5.348;
 
@@ -1076,18 +1191,17 @@ fn em_components(
     sigma2: f64,
     start: Vec<Matrix6<f64>>,
     iterations: usize,
+    centre_height: f64,
 ) -> (Vec<Matrix6<f64>>, f64) {
     let frames = shape.frames();
-    let k = 6 * frames.len();
-    let maps: Vec<DMatrix<f64>> = spans
+    // Per capture, each frame's map from its error to the pose-subspace part.
+    let maps: Vec<Vec<Matrix6<f64>>> = spans
         .iter()
         .map(|s| {
-            let mut m = DMatrix::zeros(6, k);
-            for (i, f) in frames.iter().enumerate() {
-                m.view_mut((0, 6 * i), (6, 6))
-                    .copy_from(&(s.r0 * f.to_base_left(&s.base_from_flange)));
-            }
-            m
+            frames
+                .iter()
+                .map(|f| s.r0 * frame_map(*f, &s.base_from_flange, centre_height))
+                .collect()
         })
         .collect();
     let floor = 1e-20;
@@ -1096,26 +1210,35 @@ fn em_components(
         .into_iter()
         .map(|c| c + Matrix6::identity() * floor)
         .collect();
+    // The residual covariance `C = σ² I + Σ_i M_i Σ_i M_iᵀ` of one capture.
+    let covariance = |m: &[Matrix6<f64>], comps: &[Matrix6<f64>]| {
+        m.iter()
+            .zip(comps)
+            .fold(Matrix6::identity() * sigma2, |c, (mi, ci)| {
+                c + mi * ci * mi.transpose()
+            })
+    };
     for _ in 0..iterations {
-        let mut prior = DMatrix::zeros(k, k);
-        for (i, c) in comps.iter().enumerate() {
-            let Some(inv) = c.try_inverse() else {
+        // E-step in the 6-D residual space (Woodbury): with `A_i = Σ_i M_iᵀ`,
+        // each error's posterior mean is `A_i C⁻¹ p` and its covariance
+        // `Σ_i - A_i C⁻¹ A_iᵀ`; only the per-frame blocks are needed.
+        let mut acc = vec![Matrix6::zeros(); comps.len()];
+        for (s, m) in spans.iter().zip(&maps) {
+            let Some(ch) = covariance(m, &comps).cholesky() else {
                 return (comps, f64::NEG_INFINITY);
             };
-            prior.view_mut((6 * i, 6 * i), (6, 6)).copy_from(&inv);
+            let c_inv = ch.inverse();
+            let w = c_inv * s.p;
+            for ((acc, mi), ci) in acc.iter_mut().zip(m).zip(&comps) {
+                let a = ci * mi.transpose();
+                let mean = a * w;
+                *acc += mean * mean.transpose() + ci - a * c_inv * a.transpose();
+            }
         }
-        let mut acc = DMatrix::zeros(k, k);
-        for (s, r) in spans.iter().zip(&maps) {
-            let precision = r.transpose() * r / sigma2 + &prior;
-            let Some(inv) = precision.cholesky().map(|c| c.inverse()) else {
-                continue;
-            };
-            let p = DVector::from_column_slice(s.p.as_slice());
-            let m = &inv * (r.transpose() * p) / sigma2;
-            acc += &m * m.transpose() + inv;
+        for a in acc.iter_mut() {
+            *a /= n;
         }
-        acc /= n;
-        let block = |i: usize| -> Matrix6<f64> { acc.fixed_view::<6, 6>(6 * i, 6 * i).into() };
+        let block = |i: usize| -> Matrix6<f64> { acc[i] };
         let iso = |c: &Matrix6<f64>| {
             (
                 ((c[(0, 0)] + c[(1, 1)] + c[(2, 2)]) / 3.0).max(floor),
@@ -1155,13 +1278,8 @@ fn em_components(
         }
     }
     let mut ll = 0.0;
-    for (s, r) in spans.iter().zip(&maps) {
-        let mut c = Matrix6::identity() * sigma2;
-        for (i, comp) in comps.iter().enumerate() {
-            let ri: Matrix6<f64> = r.fixed_view::<6, 6>(0, 6 * i).into();
-            c += ri * comp * ri.transpose();
-        }
-        match c.cholesky() {
+    for (s, m) in spans.iter().zip(&maps) {
+        match covariance(m, &comps).cholesky() {
             Some(ch) => {
                 let logdet: f64 = 2.0 * ch.l().diagonal().iter().map(|v| v.ln()).sum::<f64>();
                 ll -= 0.5 * (s.p.dot(&ch.solve(&s.p)) + logdet);
@@ -1705,6 +1823,55 @@ mod tests {
         );
         let (dt, _) = pose_distance(&est.flange_from_camera, &robot.flange_from_camera);
         assert!(dt < 1e-3, "{dt}");
+    }
+
+    /// Robot errors that turn the arm about a point on its base's z axis
+    /// (encoder errors of the first joints) give that point's height; errors
+    /// about the base origin give none.
+    #[test]
+    fn finds_the_height_the_base_side_errors_turn_about() {
+        use rand::SeedableRng;
+        let cfg = SynthConfig {
+            captures: 40,
+            pixel_sigma: 0.1,
+            robot_sigma_t: 0.0,
+            robot_sigma_r: 0.0,
+            ..Default::default()
+        };
+        for (seed, height) in [(5, 0.6), (6, 0.3), (7, 0.0)] {
+            let mut robot = random_robot(seed, &cfg).unwrap();
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            let about = crate::pose::adjoint(&Iso3::translation(0.0, 0.0, height));
+            let sigma = 0.05_f64.to_radians();
+            for pose in robot.base_from_flange.iter_mut() {
+                let w = Vector6::new(
+                    sigma * crate::synth::gauss(&mut rng),
+                    sigma * crate::synth::gauss(&mut rng),
+                    sigma * crate::synth::gauss(&mut rng),
+                    0.0,
+                    0.0,
+                    0.0,
+                );
+                *pose = perturb_left(&(about * w), pose);
+            }
+            let est = refine_hand_eye(
+                &cfg.camera,
+                &captures_of(&robot),
+                perturbed_start(&robot),
+                &RefineOptions::default(),
+            )
+            .unwrap();
+            let found = match est.noise.shape {
+                NoiseShape::TwoCentres => est.noise.centre_height_m,
+                NoiseShape::Isotropic(NoiseFrame::Base) => 0.0,
+                other => panic!("seed {seed}: shape {other:?} for rotations about a point"),
+            };
+            assert!(
+                (found - height).abs() < 0.08,
+                "seed {seed}: height {found:.3} m, truth {height} m ({:?})",
+                est.noise.shape
+            );
+        }
     }
 
     #[test]

@@ -523,6 +523,16 @@ impl LiveSource {
         Ok(())
     }
 
+    /// Sets the local features lifted with each frame's depth (`None`: none)
+    /// and returns the previous setting. Depth frames come only to a source
+    /// connected with features.
+    pub fn set_features(
+        &mut self,
+        features: Option<b2b_pipeline::rgbd::RgbdOptions>,
+    ) -> Option<b2b_pipeline::rgbd::RgbdOptions> {
+        std::mem::replace(&mut self.cfg.features, features)
+    }
+
     pub fn plan_only(&mut self) -> anyhow::Result<&Plan> {
         if let Step::Plan {
             count,

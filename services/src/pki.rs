@@ -259,9 +259,7 @@ pub fn revoke(dir: &Path, holder: &str) -> anyhow::Result<Issued> {
         .append(true)
         .open(&list)
         .with_context(|| format!("cannot open {}", list.display()))?;
-    let when = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
+    let when = crate::history::now_unix_ms() / 1000;
     writeln!(
         out,
         "{fingerprint}  # {holder}, revoked at unix time {when}"

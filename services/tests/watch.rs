@@ -117,14 +117,35 @@ fn a_cart_turned_by_0_1_deg_alarms_within_2_s_through_the_scene_features() {
     );
 }
 
+/// One cell at a time: four carts rendering at once on a 2-core machine
+/// would time the machine, not the watch.
+static ONE_CELL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// `set`'s scene rendered faster, written into `dir`: one sample per pixel
+/// over its textures, and its cameras' resolution divided by `divide`.
+fn fast_scene(set: &Path, dir: &Path, divide: u32) -> PathBuf {
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(set.join("scene.json")).unwrap()).unwrap();
+    json["texture_samples"] = serde_json::json!(1);
+    for robot in json["robots"].as_array_mut().unwrap() {
+        let c = &mut robot["camera"];
+        for k in ["width", "height"] {
+            c[k] = serde_json::json!(c[k].as_u64().unwrap() / u64::from(divide));
+        }
+        for k in ["fx", "fy", "cx", "cy"] {
+            c[k] = serde_json::json!(c[k].as_f64().unwrap() / f64::from(divide));
+        }
+    }
+    let scene = dir.join("scene.json");
+    std::fs::write(&scene, json.to_string()).unwrap();
+    scene
+}
+
 /// Calibrates on `set`, watches its still carts for 10 s (no alarm) with
 /// `agent watch --observe OBSERVE`, bumps robot 2 by `bump` (`b2b-sim-cart
 /// bump` flags) and returns the alarm, checked to come within 2 s on stderr
 /// and on the bus.
 fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
-    // One cell at a time: four carts rendering at once on a 2-core machine
-    // would time the machine, not the watch.
-    static ONE_CELL: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _cell = ONE_CELL.lock().unwrap_or_else(|e| e.into_inner());
     let net = net();
     let dir = net.dir.path();
@@ -163,28 +184,16 @@ fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
     // The test's own zenoh session, as any other process on the platform.
     let bus = ZenohBus::open(Some(&net.agent_cfg), Role::Agent).unwrap();
     let alarms = bus.subscribe(&alarm_key()).unwrap();
-    let mut scene = set.join("scene.json");
-    if observe == "features" {
+    let scene = if observe == "features" {
         // Two carts render the textured scene at about one frame a second
         // each here (424x240, 13 samples per pixel over its textures), far
         // below the watch's 5 Hz and a camera's rate: at half the resolution
         // and one sample they keep up with it. The watch's timing is under
         // test, not the renderer's.
-        let mut json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&scene).unwrap()).unwrap();
-        json["texture_samples"] = serde_json::json!(1);
-        for robot in json["robots"].as_array_mut().unwrap() {
-            let c = &mut robot["camera"];
-            for k in ["width", "height"] {
-                c[k] = serde_json::json!(c[k].as_u64().unwrap() / 2);
-            }
-            for k in ["fx", "fy", "cx", "cy"] {
-                c[k] = serde_json::json!(c[k].as_f64().unwrap() / 2.0);
-            }
-        }
-        scene = dir.join("scene.json");
-        std::fs::write(&scene, json.to_string()).unwrap();
-    }
+        fast_scene(set, dir, 2)
+    } else {
+        set.join("scene.json")
+    };
     let _agents: Vec<Killed> = ["robot1", "robot2"]
         .into_iter()
         .map(|robot| {
@@ -286,4 +295,126 @@ fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
     );
     assert!(!a.against_result, "{a:?}");
     a
+}
+
+/// `agent auto --watch-hz`: the automatic routine calibrates both carts with
+/// the board, and each agent then stays to watch the scene's features
+/// (`--watch-observe features`) without being started again; a 1 mm bump of
+/// robot 2 after that alarms against the scene.
+#[test]
+fn the_automatic_routine_stays_to_watch_the_scene_and_a_bump_alarms() {
+    let _cell = ONE_CELL.lock().unwrap_or_else(|e| e.into_inner());
+    let net = net();
+    let dir = net.dir.path();
+    let result = dir.join("RESULT.json");
+    let control = dir.join("control");
+    std::fs::create_dir_all(&control).unwrap();
+    // The board is detected at the scene's own resolution; one texture
+    // sample keeps the watch's frames coming at its rate.
+    let scene = fast_scene(&rgbd_dataset(), dir, 1);
+    let mut run = Killed(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["run", "--robots", "robot1,robot2", "--method", "board"])
+            .args(["--robot-sigma-mm", "0.3", "--robot-sigma-deg", "0.015"])
+            .arg("--zenoh")
+            .arg(&net.coordinator_cfg)
+            .arg("--state-dir")
+            .arg(dir.join("coordinator-state"))
+            .arg("--out")
+            .arg(&result)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let mut agents = Vec::new();
+    for robot in ["robot1", "robot2"] {
+        let mut agent = Killed(
+            Command::new(env!("CARGO_BIN_EXE_agent"))
+                .args(["auto", "--quiet", "--robot", robot])
+                .args(["--count", "12", "--min-good", "8"])
+                .args(["--robot-sigma-mm", "0.3", "--robot-sigma-deg", "0.015"])
+                .args(["--watch-hz", "5", "--watch-observe", "features"])
+                .args(["--wait-result-s", "300"])
+                .arg("--sim")
+                .arg(&scene)
+                .arg("--sim-control")
+                .arg(&control)
+                .arg("--zenoh")
+                .arg(&net.agent_cfg)
+                .arg("--state-dir")
+                .arg(dir.join(format!("agent-state-{robot}")))
+                .env("TMPDIR", dir)
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap(),
+        );
+        let lines = lines_of(&mut agent.0);
+        agents.push((robot, agent, lines));
+    }
+    let calibrated = common::wait_for_result(&result, &mut run, Duration::from_secs(400));
+    for robot in ["robot1", "robot2"] {
+        assert!(
+            calibrated.captures.used.get(robot).copied().unwrap_or(0) >= 8,
+            "{robot}: {:?}",
+            calibrated.captures
+        );
+    }
+    for (robot, _, lines) in &agents {
+        let mut seen = Vec::new();
+        let staying = wait_for(
+            lines,
+            "watching for drift",
+            Duration::from_secs(60),
+            &mut seen,
+        );
+        assert!(
+            staying.is_some(),
+            "{robot} did not stay to watch: {seen:#?}"
+        );
+    }
+
+    let mut coordinator = Killed(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["watch", "--until-alarm", "--result"])
+            .arg(&result)
+            .arg("--zenoh")
+            .arg(&net.coordinator_cfg)
+            .arg("--state-dir")
+            .arg(dir.join("coordinator-state"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let lines = lines_of(&mut coordinator.0);
+    let mut seen = Vec::new();
+    let armed = wait_for(&lines, "robot2: armed", Duration::from_secs(150), &mut seen);
+    assert!(armed.is_some(), "never armed: {seen:#?}");
+    assert!(
+        seen.iter()
+            .any(|l| l.contains("robot2: armed") && l.contains("scene")),
+        "robot 2 armed, but not against the scene: {seen:#?}"
+    );
+    let quiet = wait_for(&lines, "ALARM", Duration::from_secs(5), &mut seen);
+    assert!(quiet.is_none(), "a false alarm: {seen:#?}");
+    let out = Command::new(sim_cart())
+        .args(["bump", "--robot", "robot2", "--t-mm", "1,0,0"])
+        .arg("--control")
+        .arg(&control)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let alarm = wait_for(&lines, "ALARM", Duration::from_secs(30), &mut seen);
+    assert!(alarm.is_some(), "no alarm after the bump: {seen:#?}");
+    let status = coordinator.0.wait().unwrap();
+    assert_eq!(status.code(), Some(3), "{seen:#?}");
+    let line = seen.iter().find(|l| l.contains("ALARM")).unwrap();
+    eprintln!("after the automatic routine: {line}");
+    assert!(line.contains("robot2") && line.contains("scene"), "{line}");
 }

@@ -91,6 +91,13 @@ enum Command {
         /// watch`) at this rate until Ctrl-C.
         #[arg(long, value_parser = positive)]
         watch_hz: Option<f64>,
+        /// What that watch observes, as `agent watch --observe`: target,
+        /// features or auto. The routine's own captures carry no features.
+        #[arg(long, default_value = "auto")]
+        watch_observe: String,
+        /// The kind of the watch's features: sift, akaze or orb.
+        #[arg(long, default_value = "sift")]
+        watch_features: String,
         #[command(flatten)]
         bus: BusArgs,
         #[command(flatten)]
@@ -163,6 +170,22 @@ enum Command {
 }
 
 /// The options every run on the bus shares.
+/// `--features`: a kind of local features, or `none`.
+fn feature_kind(kind: &str) -> anyhow::Result<Option<FeatureKind>> {
+    match kind {
+        "none" => Ok(None),
+        kind => Ok(Some(FeatureKind::parse(kind)?)),
+    }
+}
+
+/// The features a watch that observes `observe` needs: none for the target alone.
+fn features_to_watch(observe: WatchObserve, kind: &str) -> anyhow::Result<Option<FeatureKind>> {
+    match observe {
+        WatchObserve::Target => Ok(None),
+        _ => Ok(Some(FeatureKind::parse(kind)?)),
+    }
+}
+
 fn agent_options(
     robot: &str,
     bus: BusArgs,
@@ -209,10 +232,7 @@ fn main() -> std::process::ExitCode {
             live,
             rerun,
         } => {
-            let features = match features.as_str() {
-                "none" => None,
-                kind => Some(FeatureKind::parse(kind)?),
-            };
+            let features = feature_kind(&features)?;
             let pace = Duration::from_millis(pace_ms);
             let opts = agent_options(&robot, bus, pace, live.noise.options(), &rerun)?;
             let stop = stop_flag();
@@ -235,10 +255,17 @@ fn main() -> std::process::ExitCode {
             stop_sigma_deg,
             min_good,
             watch_hz,
+            watch_observe,
+            watch_features,
             bus,
             live,
             rerun,
         } => {
+            let observe = WatchObserve::parse(&watch_observe)?;
+            let features = match watch_hz {
+                Some(_) => features_to_watch(observe, &watch_features)?,
+                None => None,
+            };
             let routine = RoutineConfig {
                 stop_sigma_t_m: stop_sigma_mm * 1e-3,
                 stop_sigma_r_rad: stop_sigma_deg.to_radians(),
@@ -249,7 +276,10 @@ fn main() -> std::process::ExitCode {
                 .validate()
                 .context("--stop-sigma-mm and --stop-sigma-deg must be > 0")?;
             let cart = Cart::from_flags(sim.as_deref(), fri.as_deref())?;
-            let (mut source, _cart) = connect(&robot, cart, &live, Mode::Auto(routine), None)?;
+            let (mut source, _cart) = connect(&robot, cart, &live, Mode::Auto(routine), features)?;
+            // The routine's captures go to the board method: the features are
+            // the watch's, after it.
+            let features = source.set_features(None);
             if dry_run {
                 print_plan(&robot, source.plan_only()?);
                 return Ok(());
@@ -269,13 +299,14 @@ fn main() -> std::process::ExitCode {
                     eprintln!(
                         "{robot}: the coordinator has its result; watching for drift at {hz} Hz until Ctrl-C (the result is printed after)"
                     );
+                    source.set_features(features);
                     Some(run_watch(
                         &bus,
                         &robot,
                         &state_dir,
                         &mut source,
                         period,
-                        WatchObserve::Auto,
+                        observe,
                         &stop,
                     ))
                 }
@@ -300,10 +331,7 @@ fn main() -> std::process::ExitCode {
             live,
         } => {
             let observe = WatchObserve::parse(&observe)?;
-            let features = match observe {
-                WatchObserve::Target => None,
-                _ => Some(FeatureKind::parse(&features)?),
-            };
+            let features = features_to_watch(observe, &features)?;
             let cart = Cart::from_flags(sim.as_deref(), fri.as_deref())?;
             let (mut source, _cart) = connect(&robot, cart, &live, Mode::Program, features)?;
             let zenoh = b2b_services::bus::ZenohBus::open(
