@@ -141,6 +141,58 @@ fn fast_scene(set: &Path, dir: &Path, divide: u32) -> PathBuf {
     scene
 }
 
+/// Starts `coordinator watch --until-alarm` on `result`: the process and its
+/// stderr's lines.
+fn start_watch(net: &common::Net, result: &Path) -> (Killed, mpsc::Receiver<(Instant, String)>) {
+    let mut coordinator = Killed(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["watch", "--until-alarm", "--result"])
+            .arg(result)
+            .arg("--zenoh")
+            .arg(&net.coordinator_cfg)
+            .arg("--state-dir")
+            .arg(net.dir.path().join("coordinator-state"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let lines = lines_of(&mut coordinator.0);
+    (coordinator, lines)
+}
+
+/// Waits for robot 2 to arm, then `quiet_s` seconds without an alarm, bumps
+/// robot 2's cart by `bump` through `control`, and waits for the alarm: when
+/// the bump and the alarm came, and every line seen.
+fn quiet_then_bumped(
+    lines: &mpsc::Receiver<(Instant, String)>,
+    control: &Path,
+    bump: &[&str],
+    quiet_s: u64,
+) -> (Instant, Instant, Vec<String>) {
+    let mut seen = Vec::new();
+    let armed = wait_for(lines, "robot2: armed", Duration::from_secs(150), &mut seen);
+    assert!(armed.is_some(), "never armed: {seen:#?}");
+    let quiet = wait_for(lines, "ALARM", Duration::from_secs(quiet_s), &mut seen);
+    assert!(quiet.is_none(), "a false alarm: {seen:#?}");
+    let bumped = Instant::now();
+    let out = Command::new(sim_cart())
+        .args(["bump", "--robot", "robot2"])
+        .args(bump)
+        .arg("--control")
+        .arg(control)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let alarm_at = wait_for(lines, "ALARM", Duration::from_secs(30), &mut seen)
+        .unwrap_or_else(|| panic!("no alarm after the bump: {seen:#?}"));
+    (bumped, alarm_at, seen)
+}
+
 /// Calibrates on `set`, watches its still carts for 10 s (no alarm) with
 /// `agent watch --observe OBSERVE`, bumps robot 2 by `bump` (`b2b-sim-cart
 /// bump` flags) and returns the alarm, checked to come within 2 s on stderr
@@ -167,20 +219,7 @@ fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
     let control = dir.join("control");
     std::fs::create_dir_all(&control).unwrap();
 
-    let mut coordinator = Killed(
-        Command::new(env!("CARGO_BIN_EXE_coordinator"))
-            .args(["watch", "--until-alarm", "--result"])
-            .arg(&result)
-            .arg("--zenoh")
-            .arg(&net.coordinator_cfg)
-            .arg("--state-dir")
-            .arg(dir.join("coordinator-state"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
-    let lines = lines_of(&mut coordinator.0);
+    let (mut coordinator, lines) = start_watch(&net, &result);
     // The test's own zenoh session, as any other process on the platform.
     let bus = ZenohBus::open(Some(&net.agent_cfg), Role::Agent).unwrap();
     let alarms = bus.subscribe(&alarm_key()).unwrap();
@@ -229,33 +268,13 @@ fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
         })
         .collect();
 
-    let mut seen = Vec::new();
-    let armed = wait_for(&lines, "robot2: armed", Duration::from_secs(150), &mut seen);
-    assert!(armed.is_some(), "never armed: {seen:#?}");
     // Still carts: no alarm for 10 s of watching.
-    let quiet = wait_for(&lines, "ALARM", Duration::from_secs(10), &mut seen);
-    assert!(quiet.is_none(), "a false alarm: {seen:#?}");
+    let (bumped, alarm_at, seen) = quiet_then_bumped(&lines, &control, bump, 10);
     // Observations were tested meanwhile (a summary every 5 s).
     assert!(
         seen.iter().any(|l| l.starts_with("robot2: watching")),
         "no observation tested: {seen:#?}"
     );
-
-    let bumped = Instant::now();
-    let out = Command::new(sim_cart())
-        .args(["bump", "--robot", "robot2"])
-        .args(bump)
-        .arg("--control")
-        .arg(&control)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let alarm_at = wait_for(&lines, "ALARM", Duration::from_secs(30), &mut seen)
-        .unwrap_or_else(|| panic!("no alarm after the bump: {seen:#?}"));
     let delay = alarm_at.duration_since(bumped);
     let status = coordinator.0.wait().unwrap();
     let alarm_line = seen.iter().find(|l| l.contains("ALARM")).cloned().unwrap();
@@ -375,43 +394,13 @@ fn the_automatic_routine_stays_to_watch_the_scene_and_a_bump_alarms() {
         );
     }
 
-    let mut coordinator = Killed(
-        Command::new(env!("CARGO_BIN_EXE_coordinator"))
-            .args(["watch", "--until-alarm", "--result"])
-            .arg(&result)
-            .arg("--zenoh")
-            .arg(&net.coordinator_cfg)
-            .arg("--state-dir")
-            .arg(dir.join("coordinator-state"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-    );
-    let lines = lines_of(&mut coordinator.0);
-    let mut seen = Vec::new();
-    let armed = wait_for(&lines, "robot2: armed", Duration::from_secs(150), &mut seen);
-    assert!(armed.is_some(), "never armed: {seen:#?}");
+    let (mut coordinator, lines) = start_watch(&net, &result);
+    let (_, _, seen) = quiet_then_bumped(&lines, &control, &["--t-mm", "1,0,0"], 5);
     assert!(
         seen.iter()
             .any(|l| l.contains("robot2: armed") && l.contains("scene")),
         "robot 2 armed, but not against the scene: {seen:#?}"
     );
-    let quiet = wait_for(&lines, "ALARM", Duration::from_secs(5), &mut seen);
-    assert!(quiet.is_none(), "a false alarm: {seen:#?}");
-    let out = Command::new(sim_cart())
-        .args(["bump", "--robot", "robot2", "--t-mm", "1,0,0"])
-        .arg("--control")
-        .arg(&control)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let alarm = wait_for(&lines, "ALARM", Duration::from_secs(30), &mut seen);
-    assert!(alarm.is_some(), "no alarm after the bump: {seen:#?}");
     let status = coordinator.0.wait().unwrap();
     assert_eq!(status.code(), Some(3), "{seen:#?}");
     let line = seen.iter().find(|l| l.contains("ALARM")).unwrap();
