@@ -274,6 +274,24 @@ impl FittedNoise {
         )
     }
 
+    /// One line for an operator: the robot's pose error per axis at the
+    /// flange, its shape, and the corner noise.
+    pub fn describe(&self) -> String {
+        let shape = match self.shape {
+            NoiseShape::TwoCentres => format!(
+                "rotations about the base's z axis {:.2} m up and about the flange",
+                self.centre_height_m
+            ),
+            other => other.name(),
+        };
+        format!(
+            "{:.3} mm, {:.4}° per axis at the flange ({shape}); corners {:.2} px",
+            self.sigma_t_m * 1e3,
+            self.sigma_r_rad.to_degrees(),
+            self.sigma_px
+        )
+    }
+
     /// The covariance of the left perturbation of `base_from_flange` (in the base).
     pub fn base_covariance(&self, base_from_flange: &Iso3) -> Matrix6<f64> {
         self.shape
@@ -1862,7 +1880,14 @@ mod tests {
             )
             .unwrap();
             let found = match est.noise.shape {
-                NoiseShape::TwoCentres => est.noise.centre_height_m,
+                NoiseShape::TwoCentres => {
+                    let line = est.noise.describe();
+                    assert!(
+                        line.contains(&format!("{:.2} m up", est.noise.centre_height_m)),
+                        "{line}"
+                    );
+                    est.noise.centre_height_m
+                }
                 NoiseShape::Isotropic(NoiseFrame::Base) => 0.0,
                 other => panic!("seed {seed}: shape {other:?} for rotations about a point"),
             };

@@ -354,6 +354,10 @@ pub fn print_hand_eye(run: &b2b_pipeline::HandEyeRun, obs: &b2b_pipeline::RobotO
     print_pose("T_flange_camera", &r.flange_from_camera);
     print_sigma(&r.covariance);
     println!(
+        "robot pose error as the residuals show it: {}",
+        run.estimate.noise.describe()
+    );
+    println!(
         "reprojection RMS {:.3} px; detect {:.0} ms, solve {:.0} ms",
         r.reprojection_rms_px, r.timings_ms.detect, r.timings_ms.solve
     );
