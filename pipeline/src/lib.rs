@@ -1757,6 +1757,9 @@ pub struct RobotCamera {
     pub refined: bool,
     /// `Some` when the dataset gave none and they were estimated from the images.
     pub estimated: Option<EstimatedIntrinsics>,
+    /// The robot's pose error as the joint fit found it in the residuals
+    /// (`None` where no joint fit was made).
+    pub pose_error: Option<b2b_calib::refine::FittedNoise>,
 }
 
 impl RobotCamera {
@@ -1914,7 +1917,7 @@ pub fn base_to_base_from_observations_with(
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<CalibrationResult, PipelineError> {
-    joint_bases(robots, board_centre, options, method).map(|(r, _)| r)
+    joint_bases(robots, board_centre, options, method).map(|(r, _, _)| r)
 }
 
 /// [`base_to_base_from_observations_with`] with every robot's camera as the
@@ -1925,23 +1928,26 @@ pub fn bases_and_cameras_from_observations(
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<(CalibrationResult, Vec<RobotCamera>), PipelineError> {
-    let (result, cameras) = joint_bases(robots, board_centre, options, method)?;
+    let (result, cameras, noise) = joint_bases(robots, board_centre, options, method)?;
     let refined = options_for(options, robots).refine_intrinsics;
     let cameras = robots
         .iter()
         .zip(cameras)
-        .map(|(o, camera)| RobotCamera {
+        .zip(noise)
+        .map(|((o, camera), noise)| RobotCamera {
             robot: o.robot.clone(),
             camera,
             refined,
             estimated: o.estimated_intrinsics.clone(),
+            pose_error: Some(noise),
         })
         .collect();
     Ok((result, cameras))
 }
 
 /// Every robot's base in the first robot's, as one problem over all their
-/// observations of one target, and every camera after the joint fit.
+/// observations of one target, and every camera and robot pose error after
+/// the joint fit (in `robots`' order).
 /// Intrinsics estimated from the images are refined in the joint fit
 /// ([`options_for`]); the closed-form seeds use the initial cameras. With more
 /// than two robots the result also holds `reference`, every base and every
@@ -1951,7 +1957,14 @@ fn joint_bases(
     board_centre: &Point3<f64>,
     options: &RefineOptions,
     method: B2bMethod,
-) -> Result<(CalibrationResult, Vec<CameraModel>), PipelineError> {
+) -> Result<
+    (
+        CalibrationResult,
+        Vec<CameraModel>,
+        Vec<b2b_calib::refine::FittedNoise>,
+    ),
+    PipelineError,
+> {
     let options = &options_for(options, robots);
     if method == B2bMethod::Rgbd {
         return Err(PipelineError::Unsupported(
@@ -2138,7 +2151,7 @@ fn joint_bases(
             .collect(),
         warnings: Vec::new(),
     };
-    Ok((result, run.estimate.cameras))
+    Ok((result, run.estimate.cameras, run.estimate.noise))
 }
 
 /// Each target's centre in the reference base: the main target's is

@@ -149,7 +149,18 @@ fn calibrate(dir: &Path, ds: &Path) -> (std::path::PathBuf, String) {
 #[test]
 fn calibrate_then_verify_writes_conforming_files() {
     let tmp = tempfile::tempdir().unwrap();
-    let (ds, result) = calibrate_committed(tmp.path());
+    let (ds, result, printout) = calibrate_bundled(tmp.path(), "sim-checkerboard-2x12");
+    // Each arm's pose error as the joint fit saw it: the simulated arms' are
+    // about a tenth of a millimetre.
+    for robot in ["robot1", "robot2"] {
+        let prefix = format!("{robot}: robot pose error as the residuals show it: ");
+        let line = printout
+            .lines()
+            .find_map(|l| l.strip_prefix(prefix.as_str()))
+            .unwrap_or_else(|| panic!("no pose error line for {robot}: {printout}"));
+        let mm: f64 = line.split(" mm").next().unwrap().parse().unwrap();
+        assert!((0.01..0.5).contains(&mm), "{robot}: {line}");
+    }
     let json = tmp.path().join("VERIFY.json");
     let out = coordinator()
         .args(["verify", "--result"])

@@ -388,6 +388,7 @@ fn main() -> std::process::ExitCode {
                     camera: run.estimate.camera.clone(),
                     refined: choice == HandEyeChoice::Refined,
                     estimated: obs.estimated_intrinsics.clone(),
+                    pose_error: None,
                 };
                 println!("{}", camera.describe());
             }

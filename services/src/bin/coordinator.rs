@@ -400,6 +400,15 @@ fn main() -> std::process::ExitCode {
             {
                 println!("{}", c.describe());
             }
+            for c in &cameras {
+                if let Some(noise) = &c.pose_error {
+                    println!(
+                        "{}: robot pose error as the residuals show it: {}",
+                        c.robot,
+                        noise.describe()
+                    );
+                }
+            }
             println!("wrote {}", out.display());
             Ok(())
         }
