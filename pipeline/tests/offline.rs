@@ -70,9 +70,11 @@ fn visp_hand_eye_matches_the_published_result() {
                 dt < 4.35e-3 && da.to_degrees() < 1.4,
                 "{choice}: {dt} m, {da} rad"
             );
+            // The README says 2.0 mm per axis: within 1.5x.
             assert!(
-                est.noise.sigma_t_m > 0.5e-3,
-                "the arm's error is millimetres"
+                (2.0e-3 / 1.5..2.0e-3 * 1.5).contains(&est.noise.sigma_t_m),
+                "the arm's error: {} mm",
+                est.noise.sigma_t_m * 1e3
             );
         }
     }

@@ -485,13 +485,15 @@ fn calibrate_and_handeye_without_intrinsics() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(stdout.contains("ESTIMATED from 8 images"), "{stdout}");
-    // The arm's pose error as the fit saw it: millimetres on this Franka.
+    // The arm's pose error as the fit saw it: the README says 2.6 mm here
+    // (within 1.5x).
     let noise = stdout
         .lines()
         .find_map(|l| l.strip_prefix("robot pose error as the residuals show it: "))
         .unwrap_or_else(|| panic!("no robot pose error line: {stdout}"));
     let mm: f64 = noise.split(" mm").next().unwrap().parse().unwrap();
-    assert!((0.5..5.0).contains(&mm), "{noise}");
+    eprintln!("ViSP without intrinsics: {noise}");
+    assert!((2.6 / 1.5..2.6 * 1.5).contains(&mm), "{noise}");
     let h: b2b_protocol::HandEyeResult =
         serde_json::from_str(&std::fs::read_to_string(&he).unwrap()).unwrap();
     assert_eq!(h.per_capture.len(), 8);
