@@ -80,7 +80,16 @@ pub fn rotation_from_matrix(r: &Matrix3<f64>, tol: f64) -> Result<UnitQuaternion
 /// The rotation nearest to a 3x3 matrix in the Frobenius sense (SVD projection).
 pub fn nearest_rotation(m: &Matrix3<f64>) -> UnitQuaternion<f64> {
     let svd = m.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+    nearest_rotation_from_svd(&svd.u, &svd.v_t)
+}
+
+/// [`nearest_rotation`] from the matrix's SVD factors `U` and `Vᵀ`, for callers
+/// that need the SVD anyway (identity when either is missing).
+pub fn nearest_rotation_from_svd(
+    u: &Option<Matrix3<f64>>,
+    v_t: &Option<Matrix3<f64>>,
+) -> UnitQuaternion<f64> {
+    let (Some(u), Some(v_t)) = (u, v_t) else {
         return UnitQuaternion::identity();
     };
     let mut d = Matrix3::identity();

@@ -4,10 +4,10 @@
 //! the seed paper's ground truth) and by the RGB-D feature method (3-D matches
 //! from depth, many of them wrong, hence RANSAC).
 
-use nalgebra::{Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{SeedableRng, rngs::StdRng, seq::index::sample};
 
-use crate::pose::nearest_rotation;
+use crate::pose::nearest_rotation_from_svd;
 use crate::{CalibError, Iso3};
 
 /// Rigid fit `a_from_b` minimising `Σ |a_i - a_from_b * b_i|²` (Umeyama without
@@ -87,17 +87,8 @@ fn umeyama(
             "points are coincident or collinear".into(),
         ));
     }
-    // The rotation nearest `h` ([`nearest_rotation`]) from the same SVD.
-    let r: UnitQuaternion<f64> = match (svd.u, svd.v_t) {
-        (Some(u), Some(v_t)) => {
-            let mut d = Matrix3::identity();
-            if (u * v_t).determinant() < 0.0 {
-                d[(2, 2)] = -1.0;
-            }
-            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(u * d * v_t))
-        }
-        _ => nearest_rotation(&h),
-    };
+    // The rotation nearest `h`, from the same SVD.
+    let r: UnitQuaternion<f64> = nearest_rotation_from_svd(&svd.u, &svd.v_t);
     let t = ca - r * cb;
     Ok(Iso3::from_parts(Translation3::from(t), r))
 }

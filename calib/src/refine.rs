@@ -311,10 +311,8 @@ impl FittedNoise {
 /// `centre_height` up its z axis.
 fn frame_map(frame: NoiseFrame, base_from_flange: &Iso3, centre_height: f64) -> Matrix6<f64> {
     match frame {
-        NoiseFrame::Base if centre_height != 0.0 => {
-            crate::pose::adjoint(&Iso3::translation(0.0, 0.0, centre_height))
-        }
-        _ => frame.to_base_left(base_from_flange),
+        NoiseFrame::Base => crate::pose::adjoint(&Iso3::translation(0.0, 0.0, centre_height)),
+        NoiseFrame::Flange => frame.to_base_left(base_from_flange),
     }
 }
 
@@ -992,18 +990,14 @@ impl Engine {
                             .shape_cache
                             .iter()
                             .find(|c| c.robot == robot && c.shape == shape)
-                            .cloned();
+                            .map(|c| (c.components.clone(), c.height));
+                        let (starts, previous_height) = match cached {
+                            Some((c, h)) => (c, Some(h)),
+                            None => (vec![start; shape.frames().len()], None),
+                        };
                         let (components, ll, height) = if shape == NoiseShape::TwoCentres {
-                            let starts = cached.as_ref().map_or_else(
-                                || vec![start; shape.frames().len()],
-                                |c| c.components.clone(),
-                            );
-                            fit_centre_height(&mine, sigma2, starts, cached.map(|c| c.height))
+                            fit_centre_height(&mine, sigma2, starts, previous_height)
                         } else {
-                            let starts = cached.map_or_else(
-                                || vec![start; shape.frames().len()],
-                                |c| c.components,
-                            );
                             let (c, ll) = em_components(&mine, shape, sigma2, starts, 100, 0.0);
                             (c, ll, 0.0)
                         };

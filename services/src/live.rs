@@ -191,9 +191,8 @@ pub struct LiveTimings {
     pub frame_wait_ms: f64,
 }
 
-/// The live source.
 /// What `agent watch` observes at its watch pose.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum WatchObserve {
     /// The target only.
     Target,
@@ -205,17 +204,7 @@ pub enum WatchObserve {
     Auto,
 }
 
-impl WatchObserve {
-    pub fn parse(s: &str) -> anyhow::Result<Self> {
-        match s {
-            "target" => Ok(WatchObserve::Target),
-            "features" => Ok(WatchObserve::Features),
-            "auto" => Ok(WatchObserve::Auto),
-            other => anyhow::bail!("--observe {other}: expected target, features or auto"),
-        }
-    }
-}
-
+/// The live source.
 pub struct LiveSource {
     cfg: LiveConfig,
     fri: FriClient,
@@ -484,12 +473,9 @@ impl LiveSource {
             match self.watch_frame(after_ns) {
                 Ok((frame, q, t)) => {
                     after_ns = frame.timestamp_ns + 1;
-                    let capture = match observe {
-                        WatchObserve::Target => self.look(&frame, &q, t, row, &progress).0,
-                        WatchObserve::Auto => {
-                            let (mut capture, _) = self.look(&frame, &q, t, row, &progress);
-                            capture.features = self.features(&frame);
-                            capture
+                    let mut capture = match observe {
+                        WatchObserve::Target | WatchObserve::Auto => {
+                            self.look(&frame, &q, t, row, &progress).0
                         }
                         // No target detection: the frame's time goes to its features.
                         WatchObserve::Features => {
@@ -497,12 +483,12 @@ impl LiveSource {
                                 row,
                                 "watching the scene's features, not the target".into(),
                             ));
-                            let mut capture =
-                                self.frame_capture(&frame, self.arm.fk(&q), t, row, observed);
-                            capture.features = self.features(&frame);
-                            capture
+                            self.frame_capture(&frame, self.arm.fk(&q), t, row, observed)
                         }
                     };
+                    if observe != WatchObserve::Target {
+                        capture.features = self.features(&frame);
+                    }
                     deliver(capture)?;
                 }
                 Err(e) => {

@@ -91,10 +91,10 @@ enum Command {
         /// watch`) at this rate until Ctrl-C.
         #[arg(long, value_parser = positive)]
         watch_hz: Option<f64>,
-        /// What that watch observes, as `agent watch --observe`: target,
-        /// features or auto. The routine's own captures carry no features.
-        #[arg(long, default_value = "auto")]
-        watch_observe: String,
+        /// What that watch observes, as `agent watch --observe`. The
+        /// routine's own captures carry no features.
+        #[arg(long, value_enum, default_value_t = WatchObserve::Auto)]
+        watch_observe: WatchObserve,
         /// The kind of the watch's features: sift, akaze or orb.
         #[arg(long, default_value = "sift")]
         watch_features: String,
@@ -128,8 +128,8 @@ enum Command {
         /// lifted with the depth frame, for where no target is left in view);
         /// `auto` (both: the coordinator watches the target while it is in view,
         /// else the features). Features need a camera with depth.
-        #[arg(long, default_value = "auto")]
-        observe: String,
+        #[arg(long, value_enum, default_value_t = WatchObserve::Auto)]
+        observe: WatchObserve,
         /// The kind of those features: sift, akaze or orb.
         #[arg(long, default_value = "sift")]
         features: String,
@@ -169,7 +169,6 @@ enum Command {
     },
 }
 
-/// The options every run on the bus shares.
 /// `--features`: a kind of local features, or `none`.
 fn feature_kind(kind: &str) -> anyhow::Result<Option<FeatureKind>> {
     match kind {
@@ -186,6 +185,7 @@ fn features_to_watch(observe: WatchObserve, kind: &str) -> anyhow::Result<Option
     }
 }
 
+/// The options every run on the bus shares.
 fn agent_options(
     robot: &str,
     bus: BusArgs,
@@ -261,7 +261,7 @@ fn main() -> std::process::ExitCode {
             live,
             rerun,
         } => {
-            let observe = WatchObserve::parse(&watch_observe)?;
+            let observe = watch_observe;
             let features = match watch_hz {
                 Some(_) => features_to_watch(observe, &watch_features)?,
                 None => None,
@@ -330,7 +330,6 @@ fn main() -> std::process::ExitCode {
             bus,
             live,
         } => {
-            let observe = WatchObserve::parse(&observe)?;
             let features = features_to_watch(observe, &features)?;
             let cart = Cart::from_flags(sim.as_deref(), fri.as_deref())?;
             let (mut source, _cart) = connect(&robot, cart, &live, Mode::Program, features)?;
