@@ -35,6 +35,11 @@ pub fn agent_key(robot: &str, topic: &str) -> String {
 /// cart can take: agents' keys live under `b2b/agent/`).
 pub const COORDINATOR: &str = "coordinator";
 
+/// What the drift watch's alarms name as the reference when a robot is
+/// watched through the scene's features instead of another robot (not a
+/// robot id a cart can take).
+pub const SCENE: &str = "scene";
+
 /// The key the coordinator publishes results on.
 pub fn result_key() -> String {
     format!("{KEY_ROOT}/coordinator/result")
@@ -92,8 +97,17 @@ impl Validate for SessionAnnouncement {
     }
 }
 
-/// Robot ids go into key expressions: letters, digits, `-` and `_` only.
+/// Robot ids go into key expressions: letters, digits, `-` and `_` only; the
+/// names [`COORDINATOR`] and [`SCENE`] are taken.
 pub fn validate_robot_id(id: &str) -> Result<(), ProtocolError> {
+    if id == COORDINATOR || id == SCENE {
+        return Err(ProtocolError::BadField {
+            field: "robot".into(),
+            reason: format!(
+                "'{id}' is not a robot id: the name is taken ({COORDINATOR}: the coordinator's envelopes; {SCENE}: the drift watch's scene reference)"
+            ),
+        });
+    }
     if id.is_empty()
         || id.len() > 64
         || !id
@@ -618,7 +632,7 @@ mod tests {
     #[test]
     fn robot_ids_must_be_key_safe() {
         assert!(validate_robot_id("robot-1_a").is_ok());
-        for bad in ["", "a/b", "a*", "a b", "é"] {
+        for bad in ["", "a/b", "a*", "a b", "é", "coordinator", "scene"] {
             assert!(validate_robot_id(bad).is_err(), "{bad}");
         }
     }

@@ -109,10 +109,6 @@ pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> anyhow::Res
     for (i, r) in robots.iter().enumerate() {
         validate_robot_id(r).with_context(|| format!("--robots: robot id '{r}'"))?;
         anyhow::ensure!(
-            r != COORDINATOR,
-            "--robots: '{COORDINATOR}' is the coordinator's name, not a robot id"
-        );
-        anyhow::ensure!(
             !robots[..i].contains(r),
             "--robots: robot id '{r}' is given twice"
         );
@@ -199,10 +195,6 @@ fn open_authority(dir: &Path) -> anyhow::Result<Authority> {
 /// certificate).
 pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
     validate_robot_id(robot).with_context(|| format!("--robot '{robot}'"))?;
-    anyhow::ensure!(
-        robot != COORDINATOR,
-        "--robot: '{COORDINATOR}' is the coordinator's name, not a robot id"
-    );
     let Authority {
         dir,
         ca_key,
@@ -624,7 +616,8 @@ mod tests {
         for (robots, what) in [
             (vec![], "at least one"),
             (vec!["robot1", "robot1"], "twice"),
-            (vec!["coordinator"], "coordinator's name"),
+            (vec!["coordinator"], "the coordinator's envelopes"),
+            (vec!["scene"], "the drift watch's scene reference"),
             (vec!["a/b"], "robot id 'a/b'"),
         ] {
             let robots: Vec<String> = robots.into_iter().map(String::from).collect();

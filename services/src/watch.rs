@@ -107,8 +107,9 @@ pub struct Watcher {
     rgbd: RgbdOptions,
 }
 
-/// What [`SCENE`] alarms name as the reference: the scene itself.
-pub const SCENE: &str = "scene";
+/// What scene alarms name as the reference: the scene itself (a name no
+/// robot can take).
+pub use b2b_protocol::messages::SCENE;
 
 /// One robot watched through the scene's features.
 #[derive(Debug)]
@@ -136,6 +137,9 @@ impl Watcher {
         )?;
         let mut robots = BTreeMap::new();
         for (id, pose) in &result.hand_eye {
+            // A robot called like the scene would be read as the scene.
+            b2b_protocol::messages::validate_robot_id(id)
+                .with_context(|| format!("the result's robot '{id}'"))?;
             let flange_from_camera = pose.to_isometry(&format!("hand_eye.{id}"))?;
             let (ref_from_base, covariance) = if *id == reference {
                 (Iso3::identity(), Matrix6::zeros())
