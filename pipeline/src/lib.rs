@@ -1800,6 +1800,70 @@ pub struct CalibrationRun {
     /// target's detections and the captures rejected before the fit; empty for
     /// the RGB-D method), for recordings and reports.
     pub observations: Vec<RobotObservations>,
+    /// How far the covariance had to be widened to hold the captures' own
+    /// spread (`None` for the RGB-D method, which has no such check).
+    pub spread: Option<SpreadCheck>,
+}
+
+/// A joint fit's result, its cameras, and how far its covariance had to be
+/// widened.
+#[derive(Debug, Clone)]
+pub struct JointFit {
+    pub result: CalibrationResult,
+    /// Per robot, in the observations' order.
+    pub cameras: Vec<RobotCamera>,
+    pub spread: SpreadCheck,
+}
+
+/// The largest factor the covariance of the bases was widened by to hold the
+/// captures' leave-one-out spread (the capture-clustered jackknife; see
+/// `b2b_calib::refine`), and what chance alone would give.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SpreadCheck {
+    /// On a variance, at least 1 (1: the noise model's covariance held it).
+    pub factor: f64,
+    /// The captures the fit used, over all robots.
+    pub captures: usize,
+    /// The covariance's dimension (6 per base after the reference).
+    pub dims: usize,
+}
+
+impl SpreadCheck {
+    /// The widening, in standard deviation.
+    pub fn sigma_factor(&self) -> f64 {
+        self.factor.max(1.0).sqrt()
+    }
+
+    /// About the largest widening (in standard deviation) the spread of
+    /// `captures` draws gives by chance when the noise model is right: the
+    /// edge of the sample covariance's eigenvalues (Marchenko-Pastur),
+    /// `1 + sqrt(dims / (captures - 1))`.
+    pub fn chance(&self) -> f64 {
+        1.0 + (self.dims as f64 / (self.captures.max(2) - 1) as f64).sqrt()
+    }
+
+    /// Whether the widening is beyond chance: the robots' errors have a shape
+    /// the noise model does not express, or a few captures carry much of the
+    /// fit (a capture-clustered jackknife overstates the spread then; a set
+    /// of heavily occluded views rendered with noise of the model's own shape
+    /// shows 2.7x).
+    pub fn beyond_chance(&self) -> bool {
+        self.sigma_factor() > self.chance()
+    }
+
+    /// One line for an operator.
+    pub fn describe(&self) -> String {
+        let (s, c, n) = (self.sigma_factor(), self.chance(), self.captures);
+        if self.beyond_chance() {
+            format!(
+                "covariance widened by up to {s:.2}x in σ to hold the captures' own spread, beyond the about {c:.2}x chance gives with {n} equally informative captures: the robots' errors have a shape the noise model does not express, or a few captures carry much of the fit; the reported uncertainty includes the spread either way"
+            )
+        } else {
+            format!(
+                "covariance: the captures' own spread fits the noise model (widened by up to {s:.2}x in σ; chance gives up to about {c:.2}x with {n} captures)"
+            )
+        }
+    }
 }
 
 /// The offline base-to-base calibration of a two-robot dataset.
@@ -1855,6 +1919,7 @@ pub fn base_to_base_run(
                     result: r.result,
                     cameras: Vec::new(),
                     observations: Vec::new(),
+                    spread: None,
                 }
             });
         }
@@ -1877,8 +1942,11 @@ pub fn base_to_base_run(
     }
     let board_centre = target.centre();
     let robots: Vec<&RobotObservations> = observed.iter().collect();
-    let (mut result, cameras) =
-        bases_and_cameras_from_observations(&robots, &board_centre, options, method)?;
+    let JointFit {
+        mut result,
+        cameras,
+        spread,
+    } = bases_and_cameras_from_observations(&robots, &board_centre, options, method)?;
     result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
     for c in &cameras {
         if c.estimated.is_some() {
@@ -1889,6 +1957,7 @@ pub fn base_to_base_run(
         result,
         cameras,
         observations: observed,
+        spread: Some(spread),
     })
 }
 
@@ -1917,7 +1986,7 @@ pub fn base_to_base_from_observations_with(
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<CalibrationResult, PipelineError> {
-    joint_bases(robots, board_centre, options, method).map(|(r, _, _)| r)
+    joint_bases(robots, board_centre, options, method).map(|(r, ..)| r)
 }
 
 /// [`base_to_base_from_observations_with`] with every robot's camera as the
@@ -1927,8 +1996,8 @@ pub fn bases_and_cameras_from_observations(
     board_centre: &Point3<f64>,
     options: &RefineOptions,
     method: B2bMethod,
-) -> Result<(CalibrationResult, Vec<RobotCamera>), PipelineError> {
-    let (result, cameras, noise) = joint_bases(robots, board_centre, options, method)?;
+) -> Result<JointFit, PipelineError> {
+    let (result, cameras, noise, spread) = joint_bases(robots, board_centre, options, method)?;
     let refined = options_for(options, robots).refine_intrinsics;
     let cameras = robots
         .iter()
@@ -1942,12 +2011,16 @@ pub fn bases_and_cameras_from_observations(
             pose_error: Some(noise),
         })
         .collect();
-    Ok((result, cameras))
+    Ok(JointFit {
+        result,
+        cameras,
+        spread,
+    })
 }
 
 /// Every robot's base in the first robot's, as one problem over all their
-/// observations of one target, and every camera and robot pose error after
-/// the joint fit (in `robots`' order).
+/// observations of one target, every camera and robot pose error after the
+/// joint fit (in `robots`' order), and its [`SpreadCheck`].
 /// Intrinsics estimated from the images are refined in the joint fit
 /// ([`options_for`]); the closed-form seeds use the initial cameras. With more
 /// than two robots the result also holds `reference`, every base and every
@@ -1962,6 +2035,7 @@ fn joint_bases(
         CalibrationResult,
         Vec<CameraModel>,
         Vec<b2b_calib::refine::FittedNoise>,
+        SpreadCheck,
     ),
     PipelineError,
 > {
@@ -2151,7 +2225,12 @@ fn joint_bases(
             .collect(),
         warnings: Vec::new(),
     };
-    Ok((result, run.estimate.cameras, run.estimate.noise))
+    let spread = SpreadCheck {
+        factor: run.estimate.spread_factor,
+        captures: result.captures.used.values().sum(),
+        dims: run.estimate.covariance.nrows(),
+    };
+    Ok((result, run.estimate.cameras, run.estimate.noise, spread))
 }
 
 /// Each target's centre in the reference base: the main target's is
@@ -2535,5 +2614,40 @@ mod tests {
             let chain = error_chain(&e);
             assert_eq!(chain.matches(cause.as_str()).count(), 1, "{chain}");
         }
+    }
+
+    #[test]
+    fn the_spread_check_says_whether_chance_explains_the_widening() {
+        let check = |factor: f64, captures: usize, dims: usize| SpreadCheck {
+            factor,
+            captures,
+            dims,
+        };
+        // 2 x 12 captures, one base: chance gives up to 1 + sqrt(6/23) in σ.
+        let c = check(1.145, 24, 6);
+        assert!((c.chance() - (1.0 + (6.0f64 / 23.0).sqrt())).abs() < 1e-12);
+        assert!((c.sigma_factor() - 1.145f64.sqrt()).abs() < 1e-12);
+        assert!(!c.beyond_chance());
+        let line = c.describe();
+        assert!(
+            line.contains("fits the noise model")
+                && line.contains("1.07x")
+                && line.contains("1.51x"),
+            "{line}"
+        );
+        // Four times the variance is beyond chance with 60 captures, not with 6.
+        let wide = check(4.0, 60, 6);
+        assert!(wide.beyond_chance());
+        let line = wide.describe();
+        assert!(
+            line.contains("2.00x")
+                && line.contains("a shape the noise model does not express")
+                && line.contains("a few captures carry much of the fit"),
+            "{line}"
+        );
+        assert!(!check(4.0, 6, 6).beyond_chance());
+        // Below 1 is no widening; too few captures do not divide by zero.
+        assert_eq!(check(0.5, 1, 6).sigma_factor(), 1.0);
+        assert!(check(1.0, 1, 6).chance().is_finite());
     }
 }

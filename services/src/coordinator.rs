@@ -138,12 +138,17 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
     // The one board centre: the target's, as the agents report it.
     let names: Vec<&str> = ids.iter().map(String::as_str).collect();
     let centre = store.target_centre(&names)?;
-    let (mut result, cameras) = b2b_pipeline::bases_and_cameras_from_observations(
+    let b2b_pipeline::JointFit {
+        mut result,
+        cameras,
+        spread,
+    } = b2b_pipeline::bases_and_cameras_from_observations(
         &robots,
         &centre,
         &opts.refine,
         opts.method,
     )?;
+    tracing::info!("{}", spread.describe());
     // A camera that gave no intrinsics was calibrated from these same captures:
     // the operator sees that, and with what.
     for c in cameras.iter().filter(|c| c.estimated.is_some()) {

@@ -368,14 +368,14 @@ fn main() -> std::process::ExitCode {
                 None => B2bMethod::default_for(&ds.manifest.target),
             };
             check_refine_intrinsics(refine_intrinsics, method)?;
-            let (mut result, cameras) = if hand_eye.is_empty() {
+            let (mut result, cameras, spread) = if hand_eye.is_empty() {
                 let options = RefineOptions {
                     refine_intrinsics,
                     ..noise.options()
                 };
                 let run = base_to_base_run(&ds, method, &options)?;
                 log_offline_calibration(&recorder, &ds, &run);
-                (run.result, run.cameras)
+                (run.result, run.cameras, run.spread)
             } else {
                 anyhow::ensure!(
                     method == B2bMethod::Rgbd,
@@ -383,7 +383,7 @@ fn main() -> std::process::ExitCode {
                     method.name()
                 );
                 let result = coordinator::rgbd_with_hand_eye_files(&ds, &hand_eye)?;
-                (result, vec![])
+                (result, vec![], None)
             };
             history::check_before_writing(&state_dir, &mut result);
             write_result(&out, &result).context("writing the result")?;
@@ -408,6 +408,9 @@ fn main() -> std::process::ExitCode {
                         noise.describe()
                     );
                 }
+            }
+            if let Some(spread) = spread {
+                println!("{}", spread.describe());
             }
             println!("wrote {}", out.display());
             Ok(())
