@@ -97,9 +97,14 @@ impl Validate for SessionAnnouncement {
     }
 }
 
-/// Robot ids go into key expressions: letters, digits, `-` and `_` only; the
-/// names [`COORDINATOR`] and [`SCENE`] are taken.
-pub fn validate_robot_id(id: &str) -> Result<(), ProtocolError> {
+/// A cart's robot id: a [`validate_robot_id`] that is not one of the names
+/// the service takes for itself ([`COORDINATOR`], the sender of the
+/// coordinator's envelopes, and [`SCENE`], the drift watch's scene
+/// reference). Checked where a cart is named (its agent, its certificate, a
+/// result to watch); envelopes are checked with [`validate_robot_id`], since
+/// the coordinator's own carry [`COORDINATOR`].
+pub fn validate_cart_id(id: &str) -> Result<(), ProtocolError> {
+    validate_robot_id(id)?;
     if id == COORDINATOR || id == SCENE {
         return Err(ProtocolError::BadField {
             field: "robot".into(),
@@ -108,6 +113,12 @@ pub fn validate_robot_id(id: &str) -> Result<(), ProtocolError> {
             ),
         });
     }
+    Ok(())
+}
+
+/// Ids in envelopes and key expressions (robots, and the coordinator as a
+/// sender): letters, digits, `-` and `_` only.
+pub fn validate_robot_id(id: &str) -> Result<(), ProtocolError> {
     if id.is_empty()
         || id.len() > 64
         || !id
@@ -632,8 +643,15 @@ mod tests {
     #[test]
     fn robot_ids_must_be_key_safe() {
         assert!(validate_robot_id("robot-1_a").is_ok());
-        for bad in ["", "a/b", "a*", "a b", "é", "coordinator", "scene"] {
+        for bad in ["", "a/b", "a*", "a b", "é"] {
             assert!(validate_robot_id(bad).is_err(), "{bad}");
+            assert!(validate_cart_id(bad).is_err(), "{bad}");
         }
+        // The coordinator signs its envelopes with its name; no cart takes it.
+        assert!(validate_robot_id(COORDINATOR).is_ok());
+        for taken in [COORDINATOR, SCENE] {
+            assert!(validate_cart_id(taken).is_err(), "{taken}");
+        }
+        assert!(validate_cart_id("robot-1_a").is_ok());
     }
 }

@@ -312,7 +312,7 @@ pub fn run_replay(
     features: Option<b2b_vision::features::FeatureKind>,
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<CalibrationResult>> {
-    b2b_protocol::messages::validate_robot_id(&opts.robot)?;
+    b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let mut source = ReplaySource::open(dataset, &opts.robot)?;
     if let Some(kind) = features {
         source = source.with_features(kind);
@@ -328,7 +328,7 @@ pub fn run_agent(
     source: &mut dyn CaptureSource,
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<CalibrationResult>> {
-    b2b_protocol::messages::validate_robot_id(&opts.robot)?;
+    b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let bus = Arc::new(bus::ZenohBus::open(
         opts.zenoh.as_deref(),
         bus::Role::Agent,
@@ -343,7 +343,7 @@ pub fn run_agent_on(
     source: &mut dyn CaptureSource,
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<CalibrationResult>> {
-    b2b_protocol::messages::validate_robot_id(&opts.robot)?;
+    b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let link = AgentLink::open(bus, &opts.robot, &opts.state_dir, source.describe())?;
     let results = link.status.bus.subscribe(&result_key())?;
     let bar = progress_bar(opts.progress, source.expected(), &opts.robot);
@@ -642,7 +642,7 @@ pub fn run_watch(
     observe: crate::live::WatchObserve,
     stop: &AtomicBool,
 ) -> anyhow::Result<u64> {
-    b2b_protocol::messages::validate_robot_id(robot)?;
+    b2b_protocol::messages::validate_cart_id(robot)?;
     let seq = Sequence::open(state_dir, robot)?;
     let key = agent_key(robot, WATCH_TOPIC);
     let mut published = 0u64;

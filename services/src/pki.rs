@@ -34,7 +34,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use b2b_protocol::messages::{COORDINATOR, KEY_ROOT, validate_robot_id};
+use b2b_protocol::messages::{COORDINATOR, KEY_ROOT, validate_cart_id};
 use rcgen::{
     BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
     Issuer, KeyPair, KeyUsagePurpose, SanType,
@@ -107,7 +107,7 @@ impl Endpoints {
 pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> anyhow::Result<Issued> {
     anyhow::ensure!(!robots.is_empty(), "--robots: name at least one robot");
     for (i, r) in robots.iter().enumerate() {
-        validate_robot_id(r).with_context(|| format!("--robots: robot id '{r}'"))?;
+        validate_cart_id(r).with_context(|| format!("--robots: robot id '{r}'"))?;
         anyhow::ensure!(
             !robots[..i].contains(r),
             "--robots: robot id '{r}' is given twice"
@@ -194,7 +194,7 @@ fn open_authority(dir: &Path) -> anyhow::Result<Authority> {
 /// `init` wrote. A cart already there is refused (`revoke` replaces its
 /// certificate).
 pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
-    validate_robot_id(robot).with_context(|| format!("--robot '{robot}'"))?;
+    validate_cart_id(robot).with_context(|| format!("--robot '{robot}'"))?;
     let Authority {
         dir,
         ca_key,

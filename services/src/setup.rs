@@ -240,7 +240,7 @@ pub fn connect(
     mode: Mode,
     features: Option<b2b_vision::features::FeatureKind>,
 ) -> anyhow::Result<(LiveSource, Option<crate::sim_cart::CartProcess>)> {
-    b2b_protocol::messages::validate_robot_id(robot)?;
+    b2b_protocol::messages::validate_cart_id(robot)?;
     b2b_frames::quiet_iceoryx2_logs();
     let plan = PlanConfig {
         count: live.count,

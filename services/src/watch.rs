@@ -138,7 +138,7 @@ impl Watcher {
         let mut robots = BTreeMap::new();
         for (id, pose) in &result.hand_eye {
             // A robot called like the scene would be read as the scene.
-            b2b_protocol::messages::validate_robot_id(id)
+            b2b_protocol::messages::validate_cart_id(id)
                 .with_context(|| format!("the result's robot '{id}'"))?;
             let flange_from_camera = pose.to_isometry(&format!("hand_eye.{id}"))?;
             let (ref_from_base, covariance) = if *id == reference {

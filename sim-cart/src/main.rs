@@ -140,7 +140,7 @@ fn main() -> std::process::ExitCode {
                 t_mm,
                 rpy_deg,
             } => {
-                b2b_protocol::messages::validate_robot_id(&robot)?;
+                b2b_protocol::messages::validate_cart_id(&robot)?;
                 anyhow::ensure!(
                     t_mm.len() == 3
                         && rpy_deg.len() == 3

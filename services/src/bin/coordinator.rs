@@ -457,7 +457,7 @@ fn main() -> std::process::ExitCode {
             camera,
             out,
         } => {
-            b2b_protocol::messages::validate_robot_id(&robot)?;
+            b2b_protocol::messages::validate_cart_id(&robot)?;
             let (captures, source) = match (easy_handeye, moveit) {
                 (Some(f), _) => (
                     b2b_dataset::import::read_easy_handeye_samples(&f)?,
