@@ -1986,59 +1986,23 @@ pub fn base_to_base_from_observations_with(
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<CalibrationResult, PipelineError> {
-    joint_bases(robots, board_centre, options, method).map(|(r, ..)| r)
+    bases_and_cameras_from_observations(robots, board_centre, options, method).map(|f| f.result)
 }
 
-/// [`base_to_base_from_observations_with`] with every robot's camera as the
-/// joint fit left it (and whether it was estimated from the captures).
+/// Every robot's base in the first robot's, as one problem over all their
+/// observations of one target, with every camera and robot pose error after
+/// the joint fit (in `robots`' order) and its [`SpreadCheck`].
+/// Intrinsics estimated from the images are refined in the joint fit
+/// ([`options_for`]); the closed-form seeds use the initial cameras. With more
+/// than two robots the result also holds `reference`, every base and every
+/// pair without the reference. [`base_to_base_from_observations_with`] keeps
+/// the result only.
 pub fn bases_and_cameras_from_observations(
     robots: &[&RobotObservations],
     board_centre: &Point3<f64>,
     options: &RefineOptions,
     method: B2bMethod,
 ) -> Result<JointFit, PipelineError> {
-    let (result, cameras, noise, spread) = joint_bases(robots, board_centre, options, method)?;
-    let refined = options_for(options, robots).refine_intrinsics;
-    let cameras = robots
-        .iter()
-        .zip(cameras)
-        .zip(noise)
-        .map(|((o, camera), noise)| RobotCamera {
-            robot: o.robot.clone(),
-            camera,
-            refined,
-            estimated: o.estimated_intrinsics.clone(),
-            pose_error: Some(noise),
-        })
-        .collect();
-    Ok(JointFit {
-        result,
-        cameras,
-        spread,
-    })
-}
-
-/// Every robot's base in the first robot's, as one problem over all their
-/// observations of one target, every camera and robot pose error after the
-/// joint fit (in `robots`' order), and its [`SpreadCheck`].
-/// Intrinsics estimated from the images are refined in the joint fit
-/// ([`options_for`]); the closed-form seeds use the initial cameras. With more
-/// than two robots the result also holds `reference`, every base and every
-/// pair without the reference.
-fn joint_bases(
-    robots: &[&RobotObservations],
-    board_centre: &Point3<f64>,
-    options: &RefineOptions,
-    method: B2bMethod,
-) -> Result<
-    (
-        CalibrationResult,
-        Vec<CameraModel>,
-        Vec<b2b_calib::refine::FittedNoise>,
-        SpreadCheck,
-    ),
-    PipelineError,
-> {
     let options = &options_for(options, robots);
     if method == B2bMethod::Rgbd {
         return Err(PipelineError::Unsupported(
@@ -2230,7 +2194,23 @@ fn joint_bases(
         captures: result.captures.used.values().sum(),
         dims: run.estimate.covariance.nrows(),
     };
-    Ok((result, run.estimate.cameras, run.estimate.noise, spread))
+    let cameras = robots
+        .iter()
+        .zip(run.estimate.cameras)
+        .zip(run.estimate.noise)
+        .map(|((o, camera), noise)| RobotCamera {
+            robot: o.robot.clone(),
+            camera,
+            refined: options.refine_intrinsics,
+            estimated: o.estimated_intrinsics.clone(),
+            pose_error: Some(noise),
+        })
+        .collect();
+    Ok(JointFit {
+        result,
+        cameras,
+        spread,
+    })
 }
 
 /// Each target's centre in the reference base: the main target's is
