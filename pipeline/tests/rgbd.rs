@@ -8,8 +8,8 @@ use b2b_calib::pose::pose_distance;
 use b2b_calib::refine::{RefineOptions, RobotNoise};
 use b2b_dataset::{Dataset, load_ground_truth};
 use b2b_pipeline::rgbd::{
-    RgbdOptions, combine_pairs, fit_camera_pair, lift_matches, lift_pixel, rgbd_base_to_base,
-    rgbd_base_to_base_with_hand_eyes,
+    NEAR_GATE, RgbdOptions, combine_pairs, fit_camera_pair, lift_matches, lift_pixel, load_views,
+    match_views, match_views_near, rgbd_base_to_base, rgbd_base_to_base_with_hand_eyes,
 };
 use b2b_pipeline::verify;
 use b2b_vision::features::{DepthImage, FeatureMatch};
@@ -255,6 +255,77 @@ fn sim_rgbd_boxes_with_true_hand_eyes() {
         report.touch_mean_mm
     );
     assert!(dt < 0.005 && da.to_degrees() < 0.5, "{dt} m {da} rad");
+}
+
+/// Matching near a prediction (the robot's poses and the true hand-eye say
+/// where each camera stood) keeps what brute-force matching finds between a
+/// robot's rendered views: a fit as close to the kinematics, at least 90% of
+/// its inliers (2-3x as many here: candidates near the prediction pass the
+/// ratio test where the whole image holds look-alikes). A prediction
+/// turned by 10° (beyond the gate) leaves too few matches to fit, and a gate
+/// that is not positive is refused.
+#[test]
+fn matching_near_a_prediction_keeps_the_fit() {
+    let dir = bundled("sim-rgbd-boxes-2x5");
+    let ds = Dataset::load(&dir).unwrap();
+    let truth = load_ground_truth(&dir).unwrap().unwrap();
+    let options = RgbdOptions::default();
+    let views = load_views(&ds, "robot1", &options).unwrap().views;
+    let flange_from_camera = truth.flange_from_camera["robot1"];
+    let mut compared = 0;
+    for pair in views.windows(2) {
+        let (a, b) = (&pair[0], &pair[1]);
+        let b_from_a = (b.base_from_flange * flange_from_camera).inverse()
+            * (a.base_from_flange * flange_from_camera);
+        let full = match_views(a, b, &options).unwrap();
+        let Ok(full_fit) = fit_camera_pair(&full.points1, &full.points2, &options) else {
+            continue;
+        };
+        let near = match_views_near(a, b, &b_from_a, NEAR_GATE, &options).unwrap();
+        let near_fit = fit_camera_pair(&near.points1, &near.points2, &options).unwrap();
+        // Against the kinematics' camera motion.
+        let a_from_b = b_from_a.inverse();
+        let (dt, da) = pose_distance(&near_fit.camera1_from_camera2, &a_from_b);
+        let (ft, fa) = pose_distance(&full_fit.camera1_from_camera2, &a_from_b);
+        eprintln!(
+            "rows {} -> {}: brute force {} matches, {} inliers, {:.3} mm {:.4} deg from the kinematics; near {} matches, {} inliers, {:.3} mm {:.4} deg",
+            a.row,
+            b.row,
+            full.matches,
+            full_fit.inliers,
+            ft * 1e3,
+            fa.to_degrees(),
+            near.matches,
+            near_fit.inliers,
+            dt * 1e3,
+            da.to_degrees()
+        );
+        // The kinematics carry the arm's DH errors (about 0.3 mm at the
+        // flange) and the depth its noise: both fits sit 0.3-2.1 mm from them.
+        assert!(dt < 2.5e-3 && da < 0.2f64.to_radians(), "{dt} m, {da} rad");
+        assert!(
+            near_fit.inliers * 10 >= full_fit.inliers * 9,
+            "{} of {}",
+            near_fit.inliers,
+            full_fit.inliers
+        );
+        let turned = Iso3::from_parts(
+            Translation3::identity(),
+            UnitQuaternion::from_euler_angles(0.0, 10f64.to_radians(), 0.0),
+        ) * b_from_a;
+        let off = match_views_near(a, b, &turned, NEAR_GATE, &options).unwrap();
+        assert!(
+            fit_camera_pair(&off.points1, &off.points2, &options).is_err(),
+            "10 deg off: {} matches",
+            off.matches
+        );
+        compared += 1;
+    }
+    assert!(compared >= 2, "{compared} pairs of views fitted");
+    let err = match_views_near(&views[0], &views[1], &Iso3::identity(), 0.0, &options)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("gate"), "{err}");
 }
 
 fn camera() -> CameraModel {

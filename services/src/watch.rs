@@ -23,6 +23,15 @@
 //! test, with no result covariance to test against (the baseline is the scene
 //! as the watch began). Every robot, the reference included, is watched so;
 //! its alarm names `scene` as what it moved against.
+//!
+//! The first frame after the reference is matched by brute force (every
+//! feature against every one) and its fit's inliers are remembered. Later
+//! frames are matched near where the robot's pose predicts each feature
+//! ([`match_views_near`], [`NEAR_GATE`]): a few descriptor distances per
+//! feature instead of one per pair. A frame whose guided fit fails or keeps
+//! fewer than half those inliers (the cart moved beyond the gate, or the
+//! scene changed) is matched by brute force again, so a large move is seen
+//! as it is ([`Watcher::scene_matching`] counts both).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -32,7 +41,9 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use b2b_calib::Iso3;
 use b2b_calib::drift::{DriftEvent, DriftOptions, PairWatch, innovation};
-use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, fit_camera_pair, match_views};
+use b2b_pipeline::rgbd::{
+    NEAR_GATE, RgbdOptions, RgbdView, fit_camera_pair, match_views, match_views_near,
+};
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
     COORDINATOR, Capture, DriftAlarm, Envelope, FeatureSet, agent_key, alarm_key,
@@ -121,6 +132,20 @@ struct SceneWatch {
     /// The lifted points' centroid, in the reference camera.
     centre: Point3<f64>,
     test: PairWatch,
+    /// The inliers of the first brute-force fit; a guided fit with fewer
+    /// than half as many is not trusted.
+    healthy_inliers: Option<usize>,
+    matching: SceneMatching,
+}
+
+/// How a robot's scene frames were matched to the scene's reference.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SceneMatching {
+    /// Near where the robot's pose predicts each feature.
+    pub guided: u64,
+    /// Every feature against every one: the first frame, and frames whose
+    /// guided fit failed or kept too few inliers.
+    pub brute_force: u64,
 }
 
 impl Watcher {
@@ -180,6 +205,12 @@ impl Watcher {
     /// The alarms raised so far, by robot.
     pub fn alarms(&self) -> &BTreeMap<String, DriftAlarm> {
         &self.alarmed
+    }
+
+    /// How `robot`'s scene frames were matched so far; `None` before its
+    /// scene's reference frame.
+    pub fn scene_matching(&self, robot: &str) -> Option<SceneMatching> {
+        self.scenes.get(robot).map(|s| s.matching)
     }
 
     /// Tests one observation of `robot`, received at `at`.
@@ -307,6 +338,8 @@ impl Watcher {
                     base_from_camera,
                     centre,
                     test,
+                    healthy_inliers: None,
+                    matching: SceneMatching::default(),
                 },
             );
             return skipped(format!(
@@ -315,17 +348,42 @@ impl Watcher {
                 lifted.len()
             ));
         };
-        let matched = match match_views(&scene.reference, &view, &self.rgbd) {
-            Ok(m) => m,
-            Err(e) => return skipped(format!("frame {}: matching: {e}", capture.index)),
-        };
-        let fit = match fit_camera_pair(&matched.points1, &matched.points2, &self.rgbd) {
-            Ok(f) => f,
-            Err(e) => {
-                return skipped(format!(
-                    "frame {} against the scene's reference: {e}",
-                    capture.index
-                ));
+        // Where the reference camera stands in this one, if the cart is still.
+        let now_from_reference = base_from_camera.inverse() * scene.base_from_camera;
+        let guided = scene.healthy_inliers.and_then(|healthy| {
+            let m = match_views_near(
+                &scene.reference,
+                &view,
+                &now_from_reference,
+                NEAR_GATE,
+                &self.rgbd,
+            )
+            .ok()?;
+            let fit = fit_camera_pair(&m.points1, &m.points2, &self.rgbd).ok()?;
+            (2 * fit.inliers >= healthy).then_some(fit)
+        });
+        let fit = match guided {
+            Some(fit) => {
+                scene.matching.guided += 1;
+                fit
+            }
+            None => {
+                scene.matching.brute_force += 1;
+                let matched = match match_views(&scene.reference, &view, &self.rgbd) {
+                    Ok(m) => m,
+                    Err(e) => return skipped(format!("frame {}: matching: {e}", capture.index)),
+                };
+                let fit = match fit_camera_pair(&matched.points1, &matched.points2, &self.rgbd) {
+                    Ok(f) => f,
+                    Err(e) => {
+                        return skipped(format!(
+                            "frame {} against the scene's reference: {e}",
+                            capture.index
+                        ));
+                    }
+                };
+                scene.healthy_inliers.get_or_insert(fit.inliers);
+                fit
             }
         };
         // The reference camera's frame (the scene) as the robot places it now.
@@ -412,6 +470,9 @@ pub struct WatchRun {
     /// Messages rejected as invalid.
     pub rejected: u64,
     pub alarms: Vec<DriftAlarm>,
+    /// How each robot's scene frames were matched (robots watched through
+    /// the scene's features only).
+    pub scene_matching: BTreeMap<String, SceneMatching>,
 }
 
 /// Runs `watcher` on `bus` until `stop`, the duration, or (with
@@ -461,6 +522,11 @@ pub fn run(
             }
         }
     }
+    run.scene_matching = watcher
+        .scenes
+        .iter()
+        .map(|(robot, scene)| (robot.clone(), scene.matching))
+        .collect();
     Ok(run)
 }
 
@@ -570,6 +636,12 @@ pub fn watch_command(
         run.rejected,
         run.alarms.len()
     );
+    for (robot, m) in &run.scene_matching {
+        eprintln!(
+            "{robot}: scene frames matched near the robot's prediction {}, by brute force {} (the first, and any the prediction did not hold)",
+            m.guided, m.brute_force
+        );
+    }
     if opts.until_alarm && !run.alarms.is_empty() {
         return Err(crate::ExitStatus {
             code: 3,
@@ -774,5 +846,67 @@ mod tests {
         // The other cart stays quiet.
         let event = w.observe("robot1", t0, &scene_frame(103, &scene, &still, &mut rng));
         assert!(matches!(event, WatchEvent::Watching { .. }), "{event:?}");
+        // The first frame after the reference was matched by brute force,
+        // every later one near its prediction (the moved ones too: 1 mm is
+        // well inside the gate).
+        assert_eq!(
+            w.scene_matching("robot1"),
+            Some(SceneMatching {
+                guided: 99,
+                brute_force: 1
+            })
+        );
+        assert_eq!(
+            w.scene_matching("robot2")
+                .map(|m| (m.guided, m.brute_force)),
+            Some((k - 1, 1))
+        );
+    }
+
+    /// A cart moved far beyond the matching gate (8 cm and 8°) leaves the
+    /// guided match without its inliers; the frame is matched by brute force
+    /// and the alarm says how far the scene moved.
+    #[test]
+    fn a_move_beyond_the_gate_is_matched_in_full_and_alarms() {
+        use rand::SeedableRng;
+        let mut result = older_result();
+        result.reference = Some("robot1".into());
+        let mut w = Watcher::new(&result, DriftOptions::default(), Duration::from_secs(2)).unwrap();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let scene = scene(200, &mut rng);
+        let t0 = Instant::now();
+        let still = Iso3::identity();
+        for k in 0..=30 {
+            w.observe("robot2", t0, &scene_frame(k, &scene, &still, &mut rng));
+        }
+        let before = w.scene_matching("robot2").unwrap();
+        assert_eq!((before.guided, before.brute_force), (29, 1));
+        let flange_from_camera = w.robots["robot2"].flange_from_camera;
+        let moved = Iso3::from_parts(
+            nalgebra::Translation3::new(0.08, 0.0, 0.0),
+            nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 8f64.to_radians()),
+        );
+        let camera_from_scene = flange_from_camera.inverse() * moved.inverse() * flange_from_camera;
+        let mut alarm = None;
+        for k in 31..34 {
+            if let WatchEvent::Alarm(a) = w.observe(
+                "robot2",
+                t0,
+                &scene_frame(k, &scene, &camera_from_scene, &mut rng),
+            ) {
+                alarm = Some(a);
+                break;
+            }
+        }
+        let a = alarm.expect("no alarm within three frames of an 8 cm move");
+        let after = w.scene_matching("robot2").unwrap();
+        assert_eq!(after.guided, before.guided, "{after:?}");
+        assert!(after.brute_force > before.brute_force, "{after:?}");
+        assert!(
+            (7f64..9.0).contains(&a.turn_rad.to_degrees()),
+            "turned {} deg",
+            a.turn_rad.to_degrees()
+        );
+        assert!(a.shift_m > 0.05, "{a:?}");
     }
 }

@@ -278,6 +278,30 @@ fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
     let delay = alarm_at.duration_since(bumped);
     let status = coordinator.0.wait().unwrap();
     let alarm_line = seen.iter().find(|l| l.contains("ALARM")).cloned().unwrap();
+    // What the coordinator said as it ended.
+    let mut last = Vec::new();
+    while let Ok((_, line)) = lines.recv_timeout(Duration::from_secs(5)) {
+        last.push(line);
+    }
+    if observe == "features" {
+        // Every scene frame after each robot's first comparison was matched
+        // near its prediction: the still carts' and the bumped one's.
+        let matching = last
+            .iter()
+            .find(|l| l.starts_with("robot2: scene frames matched"))
+            .unwrap_or_else(|| panic!("no scene matching summary: {last:#?}"));
+        eprintln!("{matching}");
+        let count = |after: &str, until: char| -> u64 {
+            matching
+                .split(after)
+                .nth(1)
+                .and_then(|r| r.split(until).next())
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("{matching}"))
+        };
+        let (near, brute) = (count("prediction ", ','), count("brute force ", ' '));
+        assert!(near >= 20 && brute >= 1 && brute * 10 <= near, "{matching}");
+    }
     for line in seen
         .iter()
         .filter(|l| l.contains("armed") || l.contains("in the last 5 s"))

@@ -613,12 +613,17 @@ fn bench_live_intrinsics(c: &mut Criterion) {
 /// The scene watch's decision per observation (`coordinator watch` on a
 /// frame without the target): robot 1's first view of the RGB-D set as the
 /// scene's reference and the same view with its camera moved by 1 mm, as a
-/// still scene seen from a bumped cart. Ours: the features matched and the
-/// lifted matches' rigid fit (RANSAC + Umeyama); the peer, on the same
-/// matches: OpenCV's `estimateAffine3D` (RANSAC, 5 mm, 0.99). Both are
-/// checked to find the move first, in smoke mode too.
+/// still scene seen from a bumped cart. The decision: the features matched
+/// (by brute force with OpenCV's matcher, as the watch's first frame is; and
+/// ours near where the robot's pose predicts them, as every later frame is)
+/// and the lifted matches' rigid fit (RANSAC + Umeyama); the fit's peer, on
+/// the same matches: OpenCV's `estimateAffine3D` (RANSAC, 5 mm, 0.99). All
+/// are checked to find the move first, in smoke mode too.
 fn bench_scene_watch(c: &mut Criterion) {
-    use b2b_pipeline::rgbd::{RgbdOptions, RgbdView, fit_camera_pair, load_views, match_views};
+    use b2b_pipeline::rgbd::{
+        NEAR_GATE, RgbdOptions, RgbdView, fit_camera_pair, load_views, match_views,
+        match_views_near,
+    };
     let name = "sim-rgbd-boxes-2x5";
     let ds = Dataset::load(&dataset_dir(name)).expect(name);
     let options = RgbdOptions::default();
@@ -637,6 +642,25 @@ fn bench_scene_watch(c: &mut Criterion) {
         let m = match_views(reference, &now, &options).expect("matching");
         fit_camera_pair(&m.points1, &m.points2, &options).expect("fit")
     };
+    // The watch's way after its first frame: near where the robot's pose
+    // puts each feature (the robot reports no move: the prediction is the
+    // identity; the cart's 1 mm is what the fit must find).
+    let decide_near = || {
+        let m = match_views_near(reference, &now, &Iso3::identity(), NEAR_GATE, &options)
+            .expect("matching");
+        fit_camera_pair(&m.points1, &m.points2, &options).expect("fit")
+    };
+    let near = decide_near();
+    let (dt_near, _) = pose_distance(&near.camera1_from_camera2, &camera_then_from_now);
+    eprintln!(
+        "scene_watch/{name}: near the prediction {} inliers, {:.4} mm from the move",
+        near.inliers,
+        dt_near * 1e3
+    );
+    assert!(
+        dt_near < 1e-6,
+        "ours near the prediction: {dt_near} m from the move"
+    );
     let matched = match_views(reference, &now, &options).expect("matching");
     let fit = fit_camera_pair(&matched.points1, &matched.points2, &options).expect("fit");
     let (dt, _) = pose_distance(&fit.camera1_from_camera2, &camera_then_from_now);
@@ -662,7 +686,12 @@ fn bench_scene_watch(c: &mut Criterion) {
     let tx = *out.at_2d::<f64>(0, 3).expect("3x4");
     assert!((tx - 1e-3).abs() < 1e-6, "OpenCV: tx {tx}");
     let mut g = c.benchmark_group(format!("scene_watch/{name}"));
-    g.bench_function("ours match+fit", |b| b.iter(|| black_box(decide())));
+    g.bench_function("brute-force match (OpenCV BFMatcher) + fit", |b| {
+        b.iter(|| black_box(decide()))
+    });
+    g.bench_function("ours match near the prediction + fit", |b| {
+        b.iter(|| black_box(decide_near()))
+    });
     g.bench_function("ours fit", |b| {
         b.iter(|| {
             fit_camera_pair(

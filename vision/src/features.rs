@@ -364,6 +364,195 @@ pub fn match_features(
     Ok(out)
 }
 
+/// Matches `a`'s features against `b`'s comparing only the pairs that
+/// `candidates` lists (`candidates[i]`: the indices of `b` that `a`'s feature
+/// `i` may match), as where a prediction says each feature should be seen
+/// again. The tests are [`match_features`]'s, taken among the candidates: the
+/// ratio test against the second-best candidate (ratio 0 with a single
+/// candidate) and the cross-check against the other features that list the
+/// same one. Cost: one descriptor distance per listed pair, not one per pair
+/// of features.
+pub fn match_features_among(
+    a: &Features,
+    b: &Features,
+    candidates: &[Vec<usize>],
+    options: &FeatureOptions,
+) -> Result<Vec<FeatureMatch>, VisionError> {
+    if a.kind != b.kind {
+        return Err(VisionError::InvalidSpec(format!(
+            "cannot match {} features against {} features",
+            a.kind.name(),
+            b.kind.name()
+        )));
+    }
+    if !(options.ratio > 0.0 && options.ratio <= 1.0) {
+        return Err(VisionError::InvalidSpec(format!(
+            "ratio {} must be in (0, 1]",
+            options.ratio
+        )));
+    }
+    if candidates.len() != a.len() {
+        return Err(VisionError::InvalidSpec(format!(
+            "{} candidate lists for {} features",
+            candidates.len(),
+            a.len()
+        )));
+    }
+    if let Some((i, j)) = candidates
+        .iter()
+        .enumerate()
+        .find_map(|(i, c)| c.iter().find(|j| **j >= b.len()).map(|j| (i, *j)))
+    {
+        return Err(VisionError::InvalidSpec(format!(
+            "feature {i}'s candidate {j} is beyond the other set's {} features",
+            b.len()
+        )));
+    }
+    if a.is_empty() || b.is_empty() {
+        return Ok(Vec::new());
+    }
+    let (da, db) = (a.descriptor_rows()?, b.descriptor_rows()?);
+    // Per feature of `a`: best (distance, index of b) and second-best distance.
+    let mut forward: Vec<Option<(f32, usize, f32)>> = vec![None; a.len()];
+    // Per feature of `b`: the best feature of `a` that listed it.
+    let mut backward: Vec<Option<(f32, usize)>> = vec![None; b.len()];
+    for (i, list) in candidates.iter().enumerate() {
+        for &j in list {
+            let d = da.distance(i, &db, j);
+            forward[i] = Some(match forward[i] {
+                None => (d, j, f32::INFINITY),
+                Some((best, _, _)) if d < best => (d, j, best),
+                Some((best, bj, second)) => (best, bj, second.min(d)),
+            });
+            if backward[j].is_none_or(|(best, _)| d < best) {
+                backward[j] = Some((d, i));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    for (i, f) in forward.iter().enumerate() {
+        let Some((best, j, second)) = *f else {
+            continue;
+        };
+        let ratio = if second.is_infinite() {
+            0.0
+        } else if second > 0.0 {
+            f64::from(best) / f64::from(second)
+        } else {
+            1.0
+        };
+        if ratio >= options.ratio {
+            continue;
+        }
+        if options.cross_check && backward[j].map(|(_, bi)| bi) != Some(i) {
+            continue;
+        }
+        out.push(FeatureMatch {
+            index1: i,
+            index2: j,
+            pixel1: a.pixels[i],
+            pixel2: b.pixels[j],
+            distance: f64::from(best),
+            ratio,
+        });
+    }
+    Ok(out)
+}
+
+/// A feature set's descriptors as rows of numbers, for distances computed here.
+enum DescriptorRows<'a> {
+    /// SIFT: L2 distance.
+    Float {
+        data: std::borrow::Cow<'a, [f32]>,
+        cols: usize,
+    },
+    /// AKAZE, ORB: Hamming distance.
+    Binary {
+        data: std::borrow::Cow<'a, [u8]>,
+        cols: usize,
+    },
+}
+
+impl DescriptorRows<'_> {
+    /// The distance (OpenCV's norm for the kind) between row `i` and `other`'s row `j`.
+    fn distance(&self, i: usize, other: &DescriptorRows<'_>, j: usize) -> f32 {
+        match (self, other) {
+            (DescriptorRows::Float { data: a, cols }, DescriptorRows::Float { data: b, .. }) => {
+                let (x, y) = (&a[i * cols..(i + 1) * cols], &b[j * cols..(j + 1) * cols]);
+                // Eight running sums, so that the compiler can use vector lanes.
+                let mut lanes = [0f32; 8];
+                let (xc, yc) = (x.chunks_exact(8), y.chunks_exact(8));
+                let tail: f32 = xc
+                    .remainder()
+                    .iter()
+                    .zip(yc.remainder())
+                    .map(|(p, q)| (p - q) * (p - q))
+                    .sum();
+                for (p, q) in xc.zip(yc) {
+                    for k in 0..8 {
+                        let d = p[k] - q[k];
+                        lanes[k] += d * d;
+                    }
+                }
+                (lanes.iter().sum::<f32>() + tail).sqrt()
+            }
+            (DescriptorRows::Binary { data: a, cols }, DescriptorRows::Binary { data: b, .. }) => {
+                let (x, y) = (&a[i * cols..(i + 1) * cols], &b[j * cols..(j + 1) * cols]);
+                x.iter()
+                    .zip(y)
+                    .map(|(p, q)| (p ^ q).count_ones())
+                    .sum::<u32>() as f32
+            }
+            // Kinds are checked equal before any distance is taken.
+            _ => f32::INFINITY,
+        }
+    }
+}
+
+impl Features {
+    /// The descriptors as rows, borrowed where OpenCV's matrix is continuous.
+    fn descriptor_rows(&self) -> Result<DescriptorRows<'_>, VisionError> {
+        let cols = self.descriptors.cols().max(0) as usize;
+        let rows = self.descriptors.rows().max(0) as usize;
+        if rows != self.len() {
+            return Err(VisionError::InvalidSpec(format!(
+                "{} keypoints but {rows} descriptor rows",
+                self.len()
+            )));
+        }
+        Ok(match self.kind {
+            FeatureKind::Sift => DescriptorRows::Float {
+                data: match self.descriptors.data_typed::<f32>() {
+                    Ok(d) => std::borrow::Cow::Borrowed(d),
+                    Err(_) => std::borrow::Cow::Owned(
+                        self.descriptors
+                            .try_clone()
+                            .cv("Mat::clone")?
+                            .data_typed::<f32>()
+                            .cv("Mat::data_typed")?
+                            .to_vec(),
+                    ),
+                },
+                cols,
+            },
+            FeatureKind::Akaze | FeatureKind::Orb => DescriptorRows::Binary {
+                data: match self.descriptors.data_typed::<u8>() {
+                    Ok(d) => std::borrow::Cow::Borrowed(d),
+                    Err(_) => std::borrow::Cow::Owned(
+                        self.descriptors
+                            .try_clone()
+                            .cv("Mat::clone")?
+                            .data_typed::<u8>()
+                            .cv("Mat::data_typed")?
+                            .to_vec(),
+                    ),
+                },
+                cols,
+            },
+        })
+    }
+}
+
 /// Detects in both images and matches.
 pub fn match_images(
     img1: &GrayImage,

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use b2b_vision::GrayImage;
 use b2b_vision::features::{
     FeatureKind, FeatureOptions, Features, detect_features, load_depth, match_features,
-    match_images,
+    match_features_among, match_images,
 };
 
 /// A deterministic blocky texture (like the simulator's boxes), `w x h`.
@@ -167,6 +167,117 @@ fn degenerate_input() {
             .contains("SURF")
     );
     assert_eq!(FeatureKind::parse("AKAZE").unwrap(), FeatureKind::Akaze);
+}
+
+/// Matching among listed candidates, with every pair listed, is OpenCV's
+/// brute-force matching: the same matches for every kind (up to the odd
+/// ratio at the edge of the test, where float sums may differ in the last bit).
+#[test]
+fn matching_among_every_pair_is_brute_force_matching() {
+    let a = b2b_vision::load_gray(&dataset_image("robot1", 0)).unwrap();
+    let b = b2b_vision::load_gray(&dataset_image("robot2", 0)).unwrap();
+    for kind in [FeatureKind::Sift, FeatureKind::Akaze, FeatureKind::Orb] {
+        let opts = FeatureOptions {
+            kind,
+            ..Default::default()
+        };
+        let fa = detect_features(&a, &opts).unwrap();
+        let fb = detect_features(&b, &opts).unwrap();
+        let everything: Vec<Vec<usize>> = vec![(0..fb.len()).collect(); fa.len()];
+        let ours = match_features_among(&fa, &fb, &everything, &opts).unwrap();
+        let opencv = match_features(&fa, &fb, &opts).unwrap();
+        let key = |m: &b2b_vision::features::FeatureMatch| (m.index1, m.index2);
+        let ours_keys: std::collections::BTreeSet<_> = ours.iter().map(key).collect();
+        let cv_keys: std::collections::BTreeSet<_> = opencv.iter().map(key).collect();
+        let differ = ours_keys.symmetric_difference(&cv_keys).count();
+        eprintln!(
+            "{}: {} matches among every pair, {} brute force, {differ} differ",
+            kind.name(),
+            ours.len(),
+            opencv.len()
+        );
+        assert!(opencv.len() >= 20, "{}: {}", kind.name(), opencv.len());
+        assert!(
+            differ * 100 <= opencv.len(),
+            "{}: {differ} differ",
+            kind.name()
+        );
+        for m in &ours {
+            let cv = opencv.iter().find(|c| key(c) == key(m));
+            if let Some(cv) = cv {
+                assert!(
+                    (m.distance - cv.distance).abs() <= 1e-3 * cv.distance.max(1.0),
+                    "{}: distance {} against OpenCV's {}",
+                    kind.name(),
+                    m.distance,
+                    cv.distance
+                );
+            }
+        }
+    }
+}
+
+/// A pattern repeated across the image defeats the ratio test (every feature
+/// has a twin as good as itself); candidates from where the features should
+/// be seen again tell the twins apart. Bad candidate lists are errors.
+#[test]
+fn candidates_tell_a_repeated_pattern_apart() {
+    let (tw, h) = (212u32, 240u32);
+    let tile = texture(tw, h, 777);
+    let w = 2 * tw;
+    let mut base = vec![0u8; (w * h) as usize];
+    for v in 0..h {
+        for u in 0..w {
+            base[(v * w + u) as usize] = tile[(v * tw + u % tw) as usize];
+        }
+    }
+    let (dx, dy) = (5i64, 3i64);
+    let a = GrayImage::from_raw(w, h, &base).unwrap();
+    let b = GrayImage::from_raw(w, h, &shifted(&base, w, h, dx, dy)).unwrap();
+    let opts = FeatureOptions::default();
+    let fa = detect_features(&a, &opts).unwrap();
+    let fb = detect_features(&b, &opts).unwrap();
+    let brute = match_features(&fa, &fb, &opts).unwrap();
+    // Candidates: b's features within 8 px of where a's should be.
+    let near: Vec<Vec<usize>> = fa
+        .pixels
+        .iter()
+        .map(|p| {
+            let q = nalgebra::Point2::new(p.x + dx as f64, p.y + dy as f64);
+            (0..fb.len())
+                .filter(|j| (fb.pixels[*j] - q).norm() < 8.0)
+                .collect()
+        })
+        .collect();
+    let guided = match_features_among(&fa, &fb, &near, &opts).unwrap();
+    let on_shift = |m: &&b2b_vision::features::FeatureMatch| {
+        let d = m.pixel2 - m.pixel1;
+        (d.x - dx as f64).abs() < 1.0 && (d.y - dy as f64).abs() < 1.0
+    };
+    let good = guided.iter().filter(on_shift).count();
+    eprintln!(
+        "repeated pattern: {} features; brute force {} matches, among candidates {} ({good} on the shift)",
+        fa.len(),
+        brute.len(),
+        guided.len()
+    );
+    assert!(
+        guided.len() >= 3 * brute.len().max(10),
+        "{} vs {}",
+        guided.len(),
+        brute.len()
+    );
+    assert!(good * 10 >= guided.len() * 9, "{good}/{}", guided.len());
+    let err = match_features_among(&fa, &fb, &near[1..], &opts)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("candidate lists"), "{err}");
+    let mut beyond = near.clone();
+    beyond[3] = vec![fb.len()];
+    let err = match_features_among(&fa, &fb, &beyond, &opts)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("feature 3's candidate"), "{err}");
 }
 
 #[test]
