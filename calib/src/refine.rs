@@ -422,6 +422,34 @@ impl CaptureModel {
     }
 }
 
+/// How far (px) each higher radial distortion term (`k2`'s r⁴, `k3`'s r⁶)
+/// may move the image's farthest corner, one sigma, in the prior that holds
+/// them where no corner was seen. Corners seen across the image outweigh it;
+/// a board seen only near the centre (far away, or small) cannot tell these
+/// terms from `k1`, and without it they took values that moved the image's
+/// corners by 80% (k2 -1.1, k3 13.5 for a board 2 m away). Ten pixels at the
+/// corner is the size of a mild lens's own `k2` (the simulated 640x480
+/// cameras': 8.6 px); a lens that needs far more is a wide-angle one, which
+/// this model (no `k4..k6`) does not fit anyway.
+pub const DISTORTION_PRIOR_PX: f64 = 10.0;
+
+/// `(index in the intrinsic parameters, prior sigma)` of `k2` and `k3` for
+/// `cam`: [`DISTORTION_PRIOR_PX`] at its farthest corner.
+fn distortion_prior(cam: &CameraModel) -> [(usize, f64); 2] {
+    let f = 0.5 * (cam.fx + cam.fy);
+    let (w, h) = (f64::from(cam.width), f64::from(cam.height));
+    let r2 = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+        .iter()
+        .map(|(u, v)| ((u - cam.cx) / cam.fx).powi(2) + ((v - cam.cy) / cam.fy).powi(2))
+        .fold(0.0, f64::max);
+    let r = r2.sqrt();
+    // Indices in `fx, fy, cx, cy, k1, k2, p1, p2, k3`.
+    [
+        (5, DISTORTION_PRIOR_PX / (f * r2 * r2 * r)),
+        (8, DISTORTION_PRIOR_PX / (f * r2 * r2 * r2 * r)),
+    ]
+}
+
 /// The result of the joint problem, in the engine's terms.
 #[derive(Debug, Clone)]
 pub(crate) struct EngineSolution {
@@ -692,6 +720,18 @@ impl Engine {
             jtj.gemm_tr(1.0, &jc, &jc, 1.0);
             jtr.gemv_tr(1.0, &jc, &rc, 1.0);
             rss += rc.norm_squared();
+        }
+        if self.refine_intrinsics {
+            for (c, cam) in cameras.iter().enumerate() {
+                let start = self.reference_cameras[c].params();
+                for (index, sigma) in distortion_prior(cam) {
+                    let i = 6 * poses.len() + N_INTRINSICS * c + index;
+                    let r = (cam.params()[index] - start[index]) / sigma;
+                    jtj[(i, i)] += 1.0 / (sigma * sigma);
+                    jtr[i] += r / sigma;
+                    rss += r * r;
+                }
+            }
         }
         Some((jtj, jtr, rss))
     }
@@ -1770,6 +1810,46 @@ mod tests {
     use super::*;
     use crate::pose::{left_difference, pose_distance};
     use crate::synth::{SynthConfig, random_robot};
+
+    /// One sigma of `k2` or `k3` moves the image's farthest corner by
+    /// DISTORTION_PRIOR_PX, whatever the camera.
+    #[test]
+    fn the_distortion_prior_is_ten_pixels_at_the_farthest_corner() {
+        for (w, h, f, cx, cy) in [
+            (640, 480, 615.0, 321.4, 238.7),
+            (1280, 720, 912.3, 641.2, 362.5),
+            (424, 240, 300.0, 200.0, 130.0),
+        ] {
+            let cam = CameraModel::new(w, h, [f, f, cx, cy], &[0.0; 5]).unwrap();
+            // The farthest corner from the principal point.
+            let corner = [
+                (0.0, 0.0),
+                (w as f64, 0.0),
+                (0.0, h as f64),
+                (w as f64, h as f64),
+            ]
+            .into_iter()
+            .map(|(u, v)| Point2::new(u, v))
+            .max_by(|a, b| {
+                let d = |p: &Point2<f64>| (p.x - cx).hypot(p.y - cy);
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap();
+            let xy = cam.unproject(&corner);
+            for (index, sigma) in distortion_prior(&cam) {
+                let mut moved = cam.clone();
+                let mut p = moved.params();
+                p[index] = sigma;
+                moved.set_params(&p);
+                let uv = moved.project(&Point3::new(xy.x, xy.y, 1.0)).unwrap();
+                let shift = (uv - corner).norm();
+                assert!(
+                    (shift - DISTORTION_PRIOR_PX).abs() < 1e-6,
+                    "{w}x{h}, parameter {index}: {shift} px"
+                );
+            }
+        }
+    }
 
     fn captures_of(robot: &crate::synth::SynthRobot) -> Vec<BoardCapture> {
         robot.board_captures()

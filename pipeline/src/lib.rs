@@ -1059,22 +1059,49 @@ pub const MAX_INITIAL_VIEWS: usize = 8;
 ///   views tilted in several directions separate them. From 8 views on (ViSP's
 ///   Franka set has 8) they are fitted; below, they start at zero.
 /// - `k2` needs corners over a range of radii from several views: from 5 views;
-///   with 4 (the fewest accepted) only `k1`.
+///   with 4 (the fewest accepted) only `k1`. And it needs corners far from the
+///   centre: over radii up to less than [`MIN_REACH_FOR_K2`] of the image's
+///   half-diagonal (`reach`, [`corner_reach`]: a board far away or small), the
+///   r⁴ term is hardly distinguishable from `k1`'s r² and took values that bent
+///   the image's corners by tens of pixels: then only `k1` (and `p1 p2`) at
+///   first, and the joint refinement's prior holds `k2` at that start.
 ///
 /// This is only the start. The joint refinement that follows
 /// ([`RefineOptions::refine_intrinsics`]) estimates all nine intrinsics
 /// (`fx, fy, cx, cy, k1, k2, p1, p2, k3`) together with the hand-eye (and
-/// base-to-base): the engine has no way to hold single terms fixed, but it
-/// constrains the camera far more than `calibrateCamera` does (one hand-eye
-/// instead of six pose unknowns per view), and a poorly determined `k3` moves
-/// the projection only where no corner was seen. Its uncertainty is in the
-/// poses' covariance.
-pub fn initial_distortion_terms(views: usize) -> DistortionTerms {
+/// base-to-base): it constrains the camera far more than `calibrateCamera`
+/// does (one hand-eye instead of six pose unknowns per view). `k2` and `k3`
+/// carry a prior ([`b2b_calib::refine::DISTORTION_PRIOR_PX`]: 10 px at the
+/// image's farthest corner, one sigma) that holds them where no corner was
+/// seen: a board seen only near the image's centre cannot tell them from `k1`,
+/// and unheld they moved the image's corners by hundreds of pixels (a board 2 m
+/// away: 351 and 1507 px; `cargo test -p b2b-pipeline --test symmetric far_`).
+/// The intrinsics' uncertainty is in the poses' covariance (without the prior's
+/// information: the covariance does not lean on it).
+pub fn initial_distortion_terms(views: usize, reach: f64) -> DistortionTerms {
     match views {
         0..=4 => DistortionTerms::K1,
+        _ if reach < MIN_REACH_FOR_K2 => DistortionTerms::K1,
         5..=7 => DistortionTerms::K1K2,
         _ => DistortionTerms::K1K2P1P2,
     }
+}
+
+/// The least `reach` ([`corner_reach`]) from which the initial intrinsics fit
+/// estimates `k2` ([`initial_distortion_terms`]).
+pub const MIN_REACH_FOR_K2: f64 = 0.5;
+
+/// How far from the image's centre the views' corners reach: the farthest
+/// corner's distance over the image's half-diagonal (1 at the image's corners).
+pub fn corner_reach(views: &[(String, BoardDetection)], width: u32, height: u32) -> f64 {
+    let (cx, cy) = (f64::from(width) / 2.0, f64::from(height) / 2.0);
+    let half_diagonal = cx.hypot(cy).max(1.0);
+    views
+        .iter()
+        .flat_map(|(_, det)| &det.pixels)
+        .map(|p| (p.x - cx).hypot(p.y - cy) / half_diagonal)
+        .filter(|r| r.is_finite())
+        .fold(0.0, f64::max)
 }
 
 /// The initial intrinsics fit to corners already detected (OpenCV's
@@ -1100,7 +1127,8 @@ fn initial_intrinsics(
     } else {
         usable
     };
-    let terms = initial_distortion_terms(views.len());
+    let terms =
+        initial_distortion_terms(views.len(), corner_reach(&views, guess.width, guess.height));
     let fit = b2b_vision::calibrate_from_detections(
         &views,
         guess.width,

@@ -330,7 +330,7 @@ fn estimating_intrinsics_on_2x30x54_is_accurate_and_cheap() {
     use b2b_calib::synth::{SynthConfig, two_robots};
     use b2b_pipeline::{
         EstimatedIntrinsics, MAX_INITIAL_VIEWS, Observation, RobotObservations,
-        base_to_base_from_observations, initial_distortion_terms,
+        base_to_base_from_observations, corner_reach, initial_distortion_terms,
     };
     use b2b_vision::{BoardDetection, CornerMethod, IntrinsicsOptions};
     use std::time::Instant;
@@ -365,7 +365,10 @@ fn estimating_intrinsics_on_2x30x54_is_accurate_and_cheap() {
                 let subset: Vec<_> = (0..m)
                     .map(|k| dets[k * (n - 1) / (m - 1)].clone())
                     .collect();
-                let terms = initial_distortion_terms(subset.len());
+                let terms = initial_distortion_terms(
+                    subset.len(),
+                    corner_reach(&subset, cfg.camera.width, cfg.camera.height),
+                );
                 let fit = b2b_vision::calibrate_from_detections(
                     &subset,
                     cfg.camera.width,
