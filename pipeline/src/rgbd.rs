@@ -341,18 +341,25 @@ pub fn match_views(
     options: &RgbdOptions,
 ) -> Result<ViewMatches, PipelineError> {
     let matches = match_features(&a.features, &b.features, &options.features)?;
-    let (points1, points2) = matches
-        .iter()
-        .filter_map(|m| match (a.points.get(m.index1), b.points.get(m.index2)) {
-            (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
-            _ => None,
-        })
-        .unzip();
-    Ok(ViewMatches {
-        matches: matches.len(),
-        points1,
-        points2,
-    })
+    Ok(ViewMatches::lifted(a, b, &matches))
+}
+
+impl ViewMatches {
+    /// `matches` between `a` and `b`, kept where both ends have a lifted point.
+    fn lifted(a: &RgbdView, b: &RgbdView, matches: &[FeatureMatch]) -> ViewMatches {
+        let (points1, points2) = matches
+            .iter()
+            .filter_map(|m| match (a.points.get(m.index1), b.points.get(m.index2)) {
+                (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
+                _ => None,
+            })
+            .unzip();
+        ViewMatches {
+            matches: matches.len(),
+            points1,
+            points2,
+        }
+    }
 }
 
 /// How far from its predicted place [`match_views_near`] looks for a feature:
@@ -402,18 +409,7 @@ pub fn match_views_near(
         })
         .collect();
     let matches = match_features_among(&a.features, &b.features, &candidates, &options.features)?;
-    let (points1, points2) = matches
-        .iter()
-        .filter_map(|m| match (a.points.get(m.index1), b.points.get(m.index2)) {
-            (Some(Some(p)), Some(Some(q))) => Some((*p, *q)),
-            _ => None,
-        })
-        .unzip();
-    Ok(ViewMatches {
-        matches: matches.len(),
-        points1,
-        points2,
-    })
+    Ok(ViewMatches::lifted(a, b, &matches))
 }
 
 /// Points of the normalised image plane in square cells at least `gate`

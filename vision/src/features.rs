@@ -287,6 +287,28 @@ pub fn detect_features(img: &GrayImage, options: &FeatureOptions) -> Result<Feat
     })
 }
 
+/// Two feature sets can be matched: the same kind, and a ratio in (0, 1].
+fn check_matchable(
+    a: &Features,
+    b: &Features,
+    options: &FeatureOptions,
+) -> Result<(), VisionError> {
+    if a.kind != b.kind {
+        return Err(VisionError::InvalidSpec(format!(
+            "cannot match {} features against {} features",
+            a.kind.name(),
+            b.kind.name()
+        )));
+    }
+    if !(options.ratio > 0.0 && options.ratio <= 1.0) {
+        return Err(VisionError::InvalidSpec(format!(
+            "ratio {} must be in (0, 1]",
+            options.ratio
+        )));
+    }
+    Ok(())
+}
+
 /// The best and second-best candidate of every query row.
 fn knn2(matcher: &BFMatcher, query: &Mat, train: &Mat) -> Result<Vec<Vector<DMatch>>, VisionError> {
     let mut out = Vector::<Vector<DMatch>>::new();
@@ -303,19 +325,7 @@ pub fn match_features(
     b: &Features,
     options: &FeatureOptions,
 ) -> Result<Vec<FeatureMatch>, VisionError> {
-    if a.kind != b.kind {
-        return Err(VisionError::InvalidSpec(format!(
-            "cannot match {} features against {} features",
-            a.kind.name(),
-            b.kind.name()
-        )));
-    }
-    if !(options.ratio > 0.0 && options.ratio <= 1.0) {
-        return Err(VisionError::InvalidSpec(format!(
-            "ratio {} must be in (0, 1]",
-            options.ratio
-        )));
-    }
+    check_matchable(a, b, options)?;
     if a.is_empty() || b.is_empty() {
         return Ok(Vec::new());
     }
@@ -378,19 +388,7 @@ pub fn match_features_among(
     candidates: &[Vec<usize>],
     options: &FeatureOptions,
 ) -> Result<Vec<FeatureMatch>, VisionError> {
-    if a.kind != b.kind {
-        return Err(VisionError::InvalidSpec(format!(
-            "cannot match {} features against {} features",
-            a.kind.name(),
-            b.kind.name()
-        )));
-    }
-    if !(options.ratio > 0.0 && options.ratio <= 1.0) {
-        return Err(VisionError::InvalidSpec(format!(
-            "ratio {} must be in (0, 1]",
-            options.ratio
-        )));
-    }
+    check_matchable(a, b, options)?;
     if candidates.len() != a.len() {
         return Err(VisionError::InvalidSpec(format!(
             "{} candidate lists for {} features",
