@@ -2666,19 +2666,17 @@ mod tests {
     /// equally informative: each capture an independent draw, the estimate
     /// their mean, its covariance the model's, widened by the engine's own
     /// `widen_to_spread` to the captures' jackknife spread. The edge is about
-    /// the 90th percentile of the widening (measured: 10.1-11.2% beyond it over
+    /// the 90th percentile of the widening (measured: 10.2-10.9% beyond it over
     /// 4,000 draws each; Marchenko-Pastur's asymptotic edge, at these few
     /// captures), so "beyond chance" comes about once in ten calibrations of a
     /// well-modelled rig.
     #[test]
     fn the_chance_edge_is_about_the_90th_percentile_of_a_well_modelled_spread() {
         use nalgebra::{DMatrix, DVector};
-        use rand::{Rng, SeedableRng};
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
         let mut rng = rand::rngs::StdRng::seed_from_u64(23);
-        let mut normal = move || {
-            let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
-            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-        };
+        let mut normal = move || -> f64 { StandardNormal.sample(&mut rng) };
         for (dims, captures) in [(6, 12), (6, 24), (6, 30), (12, 24)] {
             let draws = 4000;
             let mut beyond = 0;
@@ -2711,7 +2709,7 @@ mod tests {
                 100.0 * share
             );
             assert!(
-                (0.06..0.15).contains(&share),
+                (0.067..0.15).contains(&share),
                 "{dims} dims, {captures} captures: {share}"
             );
         }

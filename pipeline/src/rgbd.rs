@@ -404,7 +404,7 @@ pub fn match_views_near(
         .points
         .iter()
         .map(|p| match direction(&p.map(|p| b_from_a * p)) {
-            Some((x, y)) => grid.within(x, y, gate),
+            Some((x, y)) => grid.within(x, y),
             None => Vec::new(),
         })
         .collect();
@@ -424,6 +424,8 @@ struct DirectionGrid {
     origin: (f64, f64),
     size: f64,
     dims: (usize, usize),
+    /// How near a point must be to count.
+    gate: f64,
 }
 
 impl DirectionGrid {
@@ -474,11 +476,12 @@ impl DirectionGrid {
             origin: lo,
             size,
             dims,
+            gate,
         }
     }
 
-    /// The indices of the points within `radius` (at most the grid's gate) of `(x, y)`.
-    fn within(&self, x: f64, y: f64, radius: f64) -> Vec<usize> {
+    /// The indices of the points within the gate of `(x, y)`.
+    fn within(&self, x: f64, y: f64) -> Vec<usize> {
         // Cells as floats first: a place far outside the grid must not overflow.
         let (nx, ny) = (self.dims.0 as f64, self.dims.1 as f64);
         let cx = ((x - self.origin.0) / self.size).floor();
@@ -494,7 +497,7 @@ impl DirectionGrid {
             let row = gy * self.dims.0;
             // The cells (x0..=x1, gy) are one run of the ordered points.
             for &(j, u, v) in &self.points[self.starts[row + x0]..self.starts[row + x1 + 1]] {
-                if (u - x).powi(2) + (v - y).powi(2) <= radius * radius {
+                if (u - x).powi(2) + (v - y).powi(2) <= self.gate * self.gate {
                     near.push(j);
                 }
             }
@@ -1249,7 +1252,7 @@ mod tests {
                 .map(|(j, (x, y))| (j, *x, *y))
                 .collect();
             let grid = DirectionGrid::new(all.clone(), gate);
-            let mut found = grid.within(place.0, place.1, gate);
+            let mut found = grid.within(place.0, place.1);
             found.sort_unstable();
             let expected: Vec<usize> = all
                 .iter()
