@@ -11,10 +11,12 @@
 //! `b2b/coordinator/alarm`, on stderr and into the recording; each pair alarms
 //! once.
 //!
-//! Where no target is left in view, an agent's observation carries the scene's
-//! local features lifted with its depth frame instead (`agent watch --observe
-//! auto|features`). Each robot is then watched against the scene itself: its
-//! first such frame is the scene's reference; each later one is matched to it
+//! An agent's observation can also carry the scene's local features lifted
+//! with its depth frame (`agent watch --observe auto|features`; `auto`
+//! attaches them to every frame, with the target or without). Each robot is
+//! then also watched against the scene itself, so that the watch goes on
+//! where no target is left in view: its first frame with features is the
+//! scene's reference; each later one is matched to it
 //! (RANSAC + Umeyama over the lifted points, as the RGB-D method pairs views),
 //! which says where the reference camera is now, and through the robot's
 //! reported flange pose and hand-eye, where the scene is in the robot's base.
@@ -22,7 +24,12 @@
 //! cart's motion. The scene's shift at its centre goes to the same sequential
 //! test, with no result covariance to test against (the baseline is the scene
 //! as the watch began). Every robot, the reference included, is watched so;
-//! its alarm names `scene` as what it moved against.
+//! its alarm names `scene` as what it moved against. A frame with both is
+//! tested both ways. So when the watch starts with the target still in view,
+//! the scene's reference is taken while the target test checks the cart
+//! against the result, and a cart bumped as the target is taken away is seen
+//! against the scene; a scene reference taken without the target says that a
+//! move before it is not seen.
 //!
 //! The first frame after the reference is matched by brute force (every
 //! feature against every one) and its fit's inliers are remembered. Later
@@ -31,7 +38,9 @@
 //! feature instead of one per pair. A frame whose guided fit fails or keeps
 //! fewer than half those inliers (the cart moved beyond the gate, or the
 //! scene changed) is matched by brute force again, so a large move is seen
-//! as it is ([`Watcher::scene_matching`] counts both).
+//! as it is ([`Watcher::scene_matching`] counts both). When brute force too
+//! keeps fewer than half, the scene has lost features (the target taken
+//! away) and its count is the one later frames are held to.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -81,9 +90,21 @@ struct RobotModel {
 pub enum WatchEvent {
     /// Not tested, and why.
     Skipped { robot: String, why: String },
-    /// The pair is still establishing its baseline.
+    /// Frame `index` became the robot's scene reference, with `features`
+    /// lifted with depth; `with_target`: the target was in view too (tested
+    /// against the result in the same frame), otherwise a move before it is
+    /// not seen.
+    SceneReference {
+        robot: String,
+        index: u64,
+        features: usize,
+        with_target: bool,
+    },
+    /// The test is still establishing its baseline. `against`: the
+    /// reference robot, or [`SCENE`].
     Learning {
         robot: String,
+        against: String,
         seen: usize,
         needed: usize,
     },
@@ -95,7 +116,12 @@ pub enum WatchEvent {
         chi2: f64,
     },
     /// Tested: `z` of this observation and the CUSUM after it.
-    Watching { robot: String, z: f64, cusum: f64 },
+    Watching {
+        robot: String,
+        against: String,
+        z: f64,
+        cusum: f64,
+    },
     /// A move.
     Alarm(DriftAlarm),
 }
@@ -132,8 +158,9 @@ struct SceneWatch {
     /// The lifted points' centroid, in the reference camera.
     centre: Point3<f64>,
     test: PairWatch,
-    /// The inliers of the first brute-force fit; a guided fit with fewer
-    /// than half as many is not trusted.
+    /// The inliers of the first brute-force fit, or of a later one that
+    /// kept fewer than half as many (the scene lost features); a guided fit
+    /// with fewer than half as many is not trusted.
     healthy_inliers: Option<usize>,
     matching: SceneMatching,
 }
@@ -213,26 +240,51 @@ impl Watcher {
         self.scenes.get(robot).map(|s| s.matching)
     }
 
-    /// Tests one observation of `robot`, received at `at`.
-    pub fn observe(&mut self, robot: &str, at: Instant, capture: &Capture) -> WatchEvent {
+    /// Tests one observation of `robot`, received at `at`: its target
+    /// against the reference robot's, and its scene features against the
+    /// scene's reference frame (a frame that carries both is tested both
+    /// ways, in that order). One event per test, or one saying why none ran.
+    pub fn observe(&mut self, robot: &str, at: Instant, capture: &Capture) -> Vec<WatchEvent> {
+        let Some(model) = self.robots.get(robot) else {
+            return vec![WatchEvent::Skipped {
+                robot: robot.to_owned(),
+                why: "not a robot of the result".into(),
+            }];
+        };
+        let flange_from_camera = model.flange_from_camera;
+        let mut events = Vec::with_capacity(2);
+        if let Some(o) = &capture.observation {
+            events.push(self.observe_target(robot, at, capture, o));
+        }
+        if let Some(set) = &capture.features {
+            events.push(self.observe_scene(robot, capture, set, &flange_from_camera));
+        }
+        if events.is_empty() {
+            events.push(WatchEvent::Skipped {
+                robot: robot.to_owned(),
+                why: format!(
+                    "no target in frame {}: {}",
+                    capture.index,
+                    capture.rejected.as_deref().unwrap_or("not seen")
+                ),
+            });
+        }
+        events
+    }
+
+    /// The target `o` that `robot` (a robot of the result) saw in `capture`.
+    fn observe_target(
+        &mut self,
+        robot: &str,
+        at: Instant,
+        capture: &Capture,
+        o: &b2b_protocol::messages::BoardObservation,
+    ) -> WatchEvent {
         let skipped = |why: String| WatchEvent::Skipped {
             robot: robot.to_owned(),
             why,
         };
-        let Some(model) = self.robots.get(robot) else {
-            return skipped("not a robot of the result".into());
-        };
-        let Some(o) = &capture.observation else {
-            if let Some(set) = &capture.features {
-                let flange_from_camera = model.flange_from_camera;
-                return self.observe_scene(robot, capture, set, &flange_from_camera);
-            }
-            return skipped(format!(
-                "no target in frame {}: {}",
-                capture.index,
-                capture.rejected.as_deref().unwrap_or("not seen")
-            ));
-        };
+        let model = &self.robots[robot];
         let (Ok(base_from_flange), Ok(camera_from_target)) = (
             capture.base_from_flange.to_isometry("T_base_flange"),
             o.camera_from_target.to_isometry("T_camera_target"),
@@ -342,11 +394,12 @@ impl Watcher {
                     matching: SceneMatching::default(),
                 },
             );
-            return skipped(format!(
-                "frame {} is the scene's reference ({} features with depth)",
-                capture.index,
-                lifted.len()
-            ));
+            return WatchEvent::SceneReference {
+                robot: robot.to_owned(),
+                index: capture.index,
+                features: lifted.len(),
+                with_target: capture.observation.is_some(),
+            };
         };
         // Where the reference camera stands in this one, if the cart is still.
         let now_from_reference = base_from_camera.inverse() * scene.base_from_camera;
@@ -382,7 +435,12 @@ impl Watcher {
                         ));
                     }
                 };
-                scene.healthy_inliers.get_or_insert(fit.inliers);
+                // The first count; or a smaller one that brute force finds
+                // too: the scene lost features (the target taken away), so
+                // later frames are held to what is left of it.
+                if scene.healthy_inliers.is_none_or(|h| 2 * fit.inliers < h) {
+                    scene.healthy_inliers = Some(fit.inliers);
+                }
                 fit
             }
         };
@@ -399,6 +457,7 @@ impl Watcher {
         match event {
             DriftEvent::Learning { seen, needed } => WatchEvent::Learning {
                 robot: robot.to_owned(),
+                against: reference.to_owned(),
                 seen,
                 needed,
             },
@@ -409,6 +468,7 @@ impl Watcher {
             },
             DriftEvent::Watching { z, g } => WatchEvent::Watching {
                 robot: robot.to_owned(),
+                against: reference.to_owned(),
                 z,
                 cusum: g,
             },
@@ -462,6 +522,16 @@ impl Watcher {
     }
 }
 
+/// What a test runs against, for an operator: the reference robot's target,
+/// or the scene.
+fn against_name(against: &str) -> String {
+    if against == SCENE {
+        "the scene".into()
+    } else {
+        format!("{against}'s target")
+    }
+}
+
 /// What a watch saw.
 #[derive(Debug, Clone, Default)]
 pub struct WatchRun {
@@ -476,13 +546,14 @@ pub struct WatchRun {
 }
 
 /// Runs `watcher` on `bus` until `stop`, the duration, or (with
-/// `until_alarm`) the first alarm; `on_event` sees every decision.
+/// `until_alarm`) the first alarm; `on_event` sees every observation's
+/// decisions.
 pub fn run(
     bus: &dyn Bus,
     mut watcher: Watcher,
     opts: &WatchOptions,
     stop: &AtomicBool,
-    on_event: &mut dyn FnMut(&WatchEvent),
+    on_event: &mut dyn FnMut(&[WatchEvent]),
 ) -> anyhow::Result<WatchRun> {
     let inbox = bus.subscribe(&agent_key("*", WATCH_TOPIC))?;
     let seq = Sequence::open_named(&opts.state_dir, "watch")?;
@@ -508,18 +579,22 @@ pub fn run(
             }
         };
         run.observations += 1;
-        let event = watcher.observe(&robot, Instant::now(), &envelope.body);
-        on_event(&event);
-        if let WatchEvent::Alarm(alarm) = &event {
-            bus::publish(
-                bus,
-                &alarm_key(),
-                &Envelope::new(COORDINATOR, seq.take()?, alarm.clone()),
-            )?;
-            run.alarms.push(alarm.clone());
-            if opts.until_alarm {
-                break;
+        let events = watcher.observe(&robot, Instant::now(), &envelope.body);
+        on_event(&events);
+        let mut stop_now = false;
+        for event in &events {
+            if let WatchEvent::Alarm(alarm) = event {
+                bus::publish(
+                    bus,
+                    &alarm_key(),
+                    &Envelope::new(COORDINATOR, seq.take()?, alarm.clone()),
+                )?;
+                run.alarms.push(alarm.clone());
+                stop_now |= opts.until_alarm;
             }
+        }
+        if stop_now {
+            break;
         }
     }
     run.scene_matching = watcher
@@ -557,68 +632,105 @@ pub fn watch_command(
         opts.drift.h,
         opts.drift.result_chi2
     );
-    // Per robot: observations tested since the last summary, the largest z;
-    // and those not tested, with the last reason.
-    let mut summary: BTreeMap<String, (u64, f64)> = BTreeMap::new();
+    // Per robot and what it is tested against: observations tested since
+    // the last summary, the largest z; per robot, those not tested at all,
+    // with the last reason.
+    let mut summary: BTreeMap<(String, String), (u64, f64)> = BTreeMap::new();
     let mut untested: BTreeMap<String, (u64, String)> = BTreeMap::new();
     let reference = result.reference.clone().unwrap_or_default();
     let mut last_summary = Instant::now();
     let now_s = || crate::history::now_unix_ms() as f64 / 1e3;
-    let run = run(&bus, watcher, opts, stop, &mut |event| {
-        match event {
-            WatchEvent::Skipped { robot, why } => {
-                tracing::debug!("{robot}: skipped: {why}");
-                // The reference's own observations are used, not skipped.
-                if *robot != reference {
-                    let entry = untested.entry(robot.clone()).or_insert((0, String::new()));
+    let run = run(&bus, watcher, opts, stop, &mut |events| {
+        // An observation none of whose tests ran (the reference's own
+        // targets are used, not skipped).
+        let untested_now = events
+            .iter()
+            .all(|e| matches!(e, WatchEvent::Skipped { robot, .. } if *robot != reference));
+        if untested_now && let Some(WatchEvent::Skipped { robot, why }) = events.last() {
+            let entry = untested.entry(robot.clone()).or_insert((0, String::new()));
+            entry.0 += 1;
+            entry.1.clone_from(why);
+        }
+        for event in events {
+            match event {
+                WatchEvent::Skipped { robot, why } => {
+                    tracing::debug!("{robot}: skipped: {why}");
+                }
+                WatchEvent::SceneReference {
+                    robot,
+                    index,
+                    features,
+                    with_target,
+                } => {
+                    if *with_target {
+                        eprintln!(
+                            "{robot}: frame {index} is the scene's reference ({features} features with depth), taken with the target in view"
+                        );
+                    } else {
+                        eprintln!(
+                            "{robot}: frame {index} is the scene's reference ({features} features with depth), taken without the target: a move before it is not seen"
+                        );
+                    }
+                }
+                WatchEvent::Learning {
+                    robot,
+                    against,
+                    seen,
+                    needed,
+                } => {
+                    if *seen == 1 {
+                        eprintln!(
+                            "{robot}: learning the baseline against {} ({needed} observations)",
+                            against_name(against)
+                        );
+                    }
+                }
+                WatchEvent::Armed {
+                    robot,
+                    against,
+                    chi2,
+                } => {
+                    if against == SCENE {
+                        eprintln!(
+                            "{robot}: armed on the scene's features; the baseline's misfit against the scene's reference frame: chi2 {chi2:.1} (limit {:.1})",
+                            opts.drift.result_chi2
+                        )
+                    } else {
+                        eprintln!(
+                            "{robot}: armed; its misfit against the result: chi2 {chi2:.1} (limit {:.1})",
+                            opts.drift.result_chi2
+                        )
+                    }
+                }
+                WatchEvent::Watching {
+                    robot,
+                    against,
+                    z,
+                    cusum,
+                } => {
+                    let entry = summary
+                        .entry((robot.clone(), against.clone()))
+                        .or_insert((0, 0.0));
                     entry.0 += 1;
-                    entry.1.clone_from(why);
+                    entry.1 = entry.1.max(*z);
+                    if let Err(e) = recorder.log_watch(robot, against, now_s(), *z, *cusum) {
+                        tracing::warn!("rerun: {e}");
+                    }
                 }
-            }
-            WatchEvent::Learning {
-                robot,
-                seen,
-                needed,
-            } => {
-                if *seen == 1 {
-                    eprintln!("{robot}: learning the baseline ({needed} observations)");
-                }
-            }
-            WatchEvent::Armed {
-                robot,
-                against,
-                chi2,
-            } => {
-                if against == SCENE {
-                    eprintln!(
-                        "{robot}: armed on the scene's features; the baseline's misfit against the scene's reference frame: chi2 {chi2:.1} (limit {:.1})",
-                        opts.drift.result_chi2
-                    )
-                } else {
-                    eprintln!(
-                        "{robot}: armed; its misfit against the result: chi2 {chi2:.1} (limit {:.1})",
-                        opts.drift.result_chi2
-                    )
-                }
-            }
-            WatchEvent::Watching { robot, z, cusum } => {
-                let entry = summary.entry(robot.clone()).or_insert((0, 0.0));
-                entry.0 += 1;
-                entry.1 = entry.1.max(*z);
-                if let Err(e) = recorder.log_watch(robot, now_s(), *z, *cusum) {
-                    tracing::warn!("rerun: {e}");
-                }
-            }
-            WatchEvent::Alarm(alarm) => {
-                eprintln!("{}", alarm.message);
-                if let Err(e) = recorder.log_alarm(now_s(), &alarm.message) {
-                    tracing::warn!("rerun: {e}");
+                WatchEvent::Alarm(alarm) => {
+                    eprintln!("{}", alarm.message);
+                    if let Err(e) = recorder.log_alarm(now_s(), &alarm.message) {
+                        tracing::warn!("rerun: {e}");
+                    }
                 }
             }
         }
         if last_summary.elapsed() >= Duration::from_secs(5) {
-            for (robot, (n, z)) in std::mem::take(&mut summary) {
-                eprintln!("{robot}: watching, {n} observations in the last 5 s, largest z {z:.1}");
+            for ((robot, against), (n, z)) in std::mem::take(&mut summary) {
+                eprintln!(
+                    "{robot}: watching against {}, {n} observations in the last 5 s, largest z {z:.1}",
+                    against_name(&against)
+                );
             }
             // Observations that could not be tested, so an operator sees why a
             // cart is not watched (its reference silent, the target out of view).
@@ -694,6 +806,14 @@ mod tests {
         }
     }
 
+    /// The one event of an observation that carries one kind of thing (the
+    /// target, or the scene's features).
+    fn observe1(w: &mut Watcher, robot: &str, at: Instant, capture: &Capture) -> WatchEvent {
+        let mut events = w.observe(robot, at, capture);
+        assert_eq!(events.len(), 1, "{events:?}");
+        events.remove(0)
+    }
+
     fn why(event: WatchEvent) -> String {
         match event {
             WatchEvent::Skipped { why, .. } => why,
@@ -723,16 +843,24 @@ mod tests {
         let mut w = Watcher::new(&result, DriftOptions::default(), max_age).unwrap();
         assert_eq!(w.robots(), ["robot1", "robot2"]);
         let t0 = Instant::now();
-        assert!(why(w.observe("robot9", t0, &capture(0, true))).contains("not a robot"));
-        assert!(why(w.observe("robot2", t0, &capture(1, false))).contains("board not found"));
+        assert!(why(observe1(&mut w, "robot9", t0, &capture(0, true))).contains("not a robot"));
         assert!(
-            why(w.observe("robot2", t0, &capture(2, true))).contains("no observation of robot1")
+            why(observe1(&mut w, "robot2", t0, &capture(1, false))).contains("board not found")
         );
-        w.observe("robot1", t0, &capture(0, true));
+        assert!(
+            why(observe1(&mut w, "robot2", t0, &capture(2, true)))
+                .contains("no observation of robot1")
+        );
+        observe1(&mut w, "robot1", t0, &capture(0, true));
         let late = t0 + max_age + Duration::from_millis(500);
-        assert!(why(w.observe("robot2", late, &capture(3, true))).contains("s old"));
+        assert!(why(observe1(&mut w, "robot2", late, &capture(3, true))).contains("s old"));
         assert!(matches!(
-            w.observe("robot2", t0 + Duration::from_millis(100), &capture(4, true)),
+            observe1(
+                &mut w,
+                "robot2",
+                t0 + Duration::from_millis(100),
+                &capture(4, true)
+            ),
             WatchEvent::Learning { seen: 1, .. }
         ));
         assert!(w.alarms().is_empty());
@@ -799,12 +927,17 @@ mod tests {
         let t0 = Instant::now();
         let still = Iso3::identity();
         for robot in ["robot1", "robot2"] {
-            assert!(
-                why(w.observe(robot, t0, &scene_frame(0, &scene, &still, &mut rng)))
-                    .contains("the scene's reference (200 features with depth)")
+            assert_eq!(
+                observe1(&mut w, robot, t0, &scene_frame(0, &scene, &still, &mut rng)),
+                WatchEvent::SceneReference {
+                    robot: robot.into(),
+                    index: 0,
+                    features: 200,
+                    with_target: false
+                }
             );
             for k in 1..=20 {
-                let event = w.observe(robot, t0, &scene_frame(k, &scene, &still, &mut rng));
+                let event = observe1(&mut w, robot, t0, &scene_frame(k, &scene, &still, &mut rng));
                 match (k, event) {
                     (20, WatchEvent::Armed { against, chi2, .. }) => {
                         assert_eq!(against, SCENE);
@@ -817,7 +950,7 @@ mod tests {
         }
         for k in 21..100 {
             for robot in ["robot1", "robot2"] {
-                let event = w.observe(robot, t0, &scene_frame(k, &scene, &still, &mut rng));
+                let event = observe1(&mut w, robot, t0, &scene_frame(k, &scene, &still, &mut rng));
                 assert!(matches!(event, WatchEvent::Watching { .. }), "{event:?}");
             }
         }
@@ -829,7 +962,8 @@ mod tests {
         let camera_from_scene = flange_from_camera.inverse() * moved.inverse() * flange_from_camera;
         let mut alarm = None;
         for k in 100..103 {
-            if let WatchEvent::Alarm(a) = w.observe(
+            if let WatchEvent::Alarm(a) = observe1(
+                &mut w,
                 "robot2",
                 t0,
                 &scene_frame(k, &scene, &camera_from_scene, &mut rng),
@@ -844,7 +978,12 @@ mod tests {
         assert!((0.8e-3..1.2e-3).contains(&a.shift_m), "{a:?}");
         assert!(a.message.contains("moved against scene"), "{}", a.message);
         // The other cart stays quiet.
-        let event = w.observe("robot1", t0, &scene_frame(103, &scene, &still, &mut rng));
+        let event = observe1(
+            &mut w,
+            "robot1",
+            t0,
+            &scene_frame(103, &scene, &still, &mut rng),
+        );
         assert!(matches!(event, WatchEvent::Watching { .. }), "{event:?}");
         // The first frame after the reference was matched by brute force,
         // every later one near its prediction (the moved ones too: 1 mm is
@@ -877,7 +1016,12 @@ mod tests {
         let t0 = Instant::now();
         let still = Iso3::identity();
         for k in 0..=30 {
-            w.observe("robot2", t0, &scene_frame(k, &scene, &still, &mut rng));
+            observe1(
+                &mut w,
+                "robot2",
+                t0,
+                &scene_frame(k, &scene, &still, &mut rng),
+            );
         }
         let before = w.scene_matching("robot2").unwrap();
         assert_eq!((before.guided, before.brute_force), (29, 1));
@@ -889,7 +1033,8 @@ mod tests {
         let camera_from_scene = flange_from_camera.inverse() * moved.inverse() * flange_from_camera;
         let mut alarm = None;
         for k in 31..34 {
-            if let WatchEvent::Alarm(a) = w.observe(
+            if let WatchEvent::Alarm(a) = observe1(
+                &mut w,
                 "robot2",
                 t0,
                 &scene_frame(k, &scene, &camera_from_scene, &mut rng),
@@ -908,5 +1053,118 @@ mod tests {
             a.turn_rad.to_degrees()
         );
         assert!(a.shift_m > 0.05, "{a:?}");
+    }
+
+    /// A frame with the target in view (robot 1's target pose, as `robot`
+    /// sees it through the result, with 0.05 mm of noise) and the scene's
+    /// features.
+    fn target_and_scene_frame(
+        w: &Watcher,
+        robot: &str,
+        index: u64,
+        scene: &(Vec<Point3<f64>>, Vec<u8>),
+        camera_from_scene: &Iso3,
+        rng: &mut rand::rngs::StdRng,
+    ) -> Capture {
+        use rand::Rng;
+        let mut c = scene_frame(index, scene, camera_from_scene, rng);
+        let ref_from_target =
+            w.robots["robot1"].flange_from_camera * Iso3::translation(0.0, 0.0, 0.5);
+        let model = &w.robots[robot];
+        let camera_from_target = Iso3::translation(
+            rng.random_range(-0.05e-3..0.05e-3),
+            rng.random_range(-0.05e-3..0.05e-3),
+            rng.random_range(-0.05e-3..0.05e-3),
+        ) * (model.ref_from_base * model.flange_from_camera).inverse()
+            * ref_from_target;
+        let seen = capture(index, true);
+        c.observation = seen.observation.map(|mut o| {
+            o.camera_from_target = Pose::from_isometry(&camera_from_target);
+            o
+        });
+        c.rejected = None;
+        c
+    }
+
+    /// The watch starts with the target in view, so each robot's scene
+    /// reference is taken while its target agrees with the result. Robot 2's
+    /// cart is bumped by 1 mm as the target is taken away (the board's
+    /// features, over half the scene's, go with it): its scene watch, armed
+    /// before, alarms; a watch whose scene reference is the first frame
+    /// without the target (taken after the bump) sees nothing.
+    #[test]
+    fn a_cart_bumped_as_the_target_is_taken_away_alarms_on_the_scene() {
+        use rand::SeedableRng;
+        let mut result = older_result();
+        result.reference = Some("robot1".into());
+        let mut w = Watcher::new(&result, DriftOptions::default(), Duration::from_secs(2)).unwrap();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let scene = scene(200, &mut rng);
+        // The board's features: the first 120 of the scene's.
+        let without_board = (scene.0[120..].to_vec(), scene.1[120 * 32..].to_vec());
+        let t0 = Instant::now();
+        let still = Iso3::identity();
+        let mut armed = Vec::new();
+        for k in 0..=25 {
+            for robot in ["robot1", "robot2"] {
+                let frame = target_and_scene_frame(&w, robot, k, &scene, &still, &mut rng);
+                let events = w.observe(robot, t0, &frame);
+                assert_eq!(events.len(), 2, "frame {k} of {robot}: {events:?}");
+                for event in events {
+                    match event {
+                        WatchEvent::Armed { robot, against, .. } => armed.push((robot, against)),
+                        WatchEvent::Alarm(a) => panic!("frame {k}: {}", a.message),
+                        WatchEvent::SceneReference { with_target, .. } => {
+                            assert!(k == 0 && with_target)
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        }
+        let against = |robot: &str, what: &str| (robot.to_owned(), what.to_owned());
+        armed.sort();
+        assert_eq!(
+            armed,
+            [
+                against("robot1", SCENE),
+                against("robot2", "robot1"),
+                against("robot2", SCENE)
+            ]
+        );
+        let flange_from_camera = w.robots["robot2"].flange_from_camera;
+        let moved = Iso3::translation(1e-3, 0.0, 0.0);
+        let bumped = flange_from_camera.inverse() * moved.inverse() * flange_from_camera;
+        let frames_after: Vec<Capture> = (26..56)
+            .map(|k| scene_frame(k, &without_board, &bumped, &mut rng))
+            .collect();
+        let mut alarm = None;
+        for (k, frame) in frames_after.iter().enumerate().take(3) {
+            let still_frame = scene_frame(26 + k as u64, &without_board, &still, &mut rng);
+            let quiet = observe1(&mut w, "robot1", t0, &still_frame);
+            assert!(matches!(quiet, WatchEvent::Watching { .. }), "{quiet:?}");
+            if let WatchEvent::Alarm(a) = observe1(&mut w, "robot2", t0, frame) {
+                alarm = Some(a);
+                break;
+            }
+        }
+        let a = alarm.expect("no alarm within three frames of the bump");
+        assert_eq!(a.reference, SCENE);
+        assert!((0.8e-3..1.2e-3).contains(&a.shift_m), "{a:?}");
+        // Robot 1's scene lost over half its features with the board: its
+        // first frame without them went to brute force and set the count its
+        // later frames are held to, so they are guided again.
+        let m = w.scene_matching("robot1").unwrap();
+        assert_eq!((m.guided, m.brute_force), (25 + 1, 2), "{m:?}");
+
+        // Without the target's frames the scene's reference is the bumped
+        // cart's first frame: nothing to see.
+        let mut late =
+            Watcher::new(&result, DriftOptions::default(), Duration::from_secs(2)).unwrap();
+        for frame in &frames_after {
+            if let WatchEvent::Alarm(a) = observe1(&mut late, "robot2", t0, frame) {
+                panic!("{}", a.message);
+            }
+        }
     }
 }

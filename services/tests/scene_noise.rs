@@ -108,10 +108,12 @@ fn the_scene_watch_stays_quiet_on_rendered_still_frames() {
             base_from_target: None,
             features: Some(view.to_feature_set().unwrap()),
         };
-        match watcher.observe("robot2", Instant::now(), &capture) {
-            WatchEvent::Watching { z, .. } => watched_z.push(z),
-            WatchEvent::Alarm(a) => panic!("frame {k}: {}", a.message),
-            _ => {}
+        for event in watcher.observe("robot2", Instant::now(), &capture) {
+            match event {
+                WatchEvent::Watching { z, .. } => watched_z.push(z),
+                WatchEvent::Alarm(a) => panic!("frame {k}: {}", a.message),
+                _ => {}
+            }
         }
     }
     let matching = watcher.scene_matching("robot2").unwrap();

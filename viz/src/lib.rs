@@ -523,12 +523,14 @@ impl Recorder {
         Ok(())
     }
 
-    /// The drift watch of one robot (`coordinator watch`): the observation's
-    /// test statistic `z` and the CUSUM after it, at `unix_time_s`, under
-    /// `watch/ROBOT/z` and `watch/ROBOT/cusum`.
+    /// The drift watch of one robot (`coordinator watch`) against one
+    /// reference (a robot's target, or the scene): the observation's test
+    /// statistic `z` and the CUSUM after it, at `unix_time_s`, under
+    /// `watch/ROBOT/AGAINST/z` and `watch/ROBOT/AGAINST/cusum`.
     pub fn log_watch(
         &self,
         robot: &str,
+        against: &str,
         unix_time_s: f64,
         z: f64,
         cusum: f64,
@@ -540,10 +542,12 @@ impl Recorder {
             self.rec
                 .set_timestamp_secs_since_epoch(TIMELINE_TIME, unix_time_s);
         }
-        self.rec
-            .log(format!("watch/{robot}/z"), &rerun::Scalars::single(z))?;
         self.rec.log(
-            format!("watch/{robot}/cusum"),
+            format!("watch/{robot}/{against}/z"),
+            &rerun::Scalars::single(z),
+        )?;
+        self.rec.log(
+            format!("watch/{robot}/{against}/cusum"),
             &rerun::Scalars::single(cusum),
         )?;
         Ok(())
