@@ -76,6 +76,13 @@ pub fn bump_file(control: &Path, robot: &str) -> PathBuf {
     control.join(format!("bump-{robot}.json"))
 }
 
+/// The command file that takes the target away: while it exists, every cart
+/// watching `control` renders the scene without its target (an operator has
+/// carried the board off). Its content is not read.
+pub fn target_taken_file(control: &Path) -> PathBuf {
+    control.join("target-taken")
+}
+
 /// Takes a pending bump of `robot`, if any.
 fn take_bump(control: &Path, robot: &str) -> anyhow::Result<Option<Iso3>> {
     let file = bump_file(control, robot);
@@ -122,6 +129,8 @@ pub fn run_cart(
     let renderer = Renderer::new(&scene.camera(r)?)?;
     let camera = scene.reported_camera(r)?;
     let (geometry, _, _) = b2b_sim::generate::scene_geometry(&scene, &opts.scene)?;
+    let without_target = b2b_sim::generate::scene_geometry_without_target(&scene, &opts.scene)?;
+    let mut target_taken = false;
     let mut world_from_base = scene.base1_from_base(r, &opts.scene)?;
     let flange_from_camera = spec
         .flange_from_camera
@@ -172,6 +181,15 @@ pub fn run_cart(
             if !fri.is_running() {
                 break;
             }
+            // The target first: a bump commanded after the target was taken
+            // never shows in a frame with the target.
+            if let Some(control) = &opts.control
+                && !target_taken
+                && target_taken_file(control).exists()
+            {
+                target_taken = true;
+                tracing::info!("cart {}: the target is taken away", opts.robot);
+            }
             if let Some(control) = &opts.control
                 && let Some(delta) = take_bump(control, &opts.robot)?
             {
@@ -196,7 +214,12 @@ pub fn run_cart(
             let timestamp_ns = now_ns();
             let camera_from_world =
                 (world_from_base * base_from_flange * flange_from_camera).inverse();
-            let irradiance = renderer.render(&camera_from_world, &geometry, &settings);
+            let world = if target_taken {
+                &without_target
+            } else {
+                &geometry
+            };
+            let irradiance = renderer.render(&camera_from_world, world, &settings);
             let grey = expose(&irradiance, &scene.noise, &mut rng);
             let depth = scene.depth.map(|m| m.measure(&irradiance, &mut rng));
             number += 1;

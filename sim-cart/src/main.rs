@@ -65,7 +65,7 @@ enum Command {
         /// iceoryx2 service root of the camera.
         #[arg(long, default_value = "b2b/camera")]
         camera_prefix: String,
-        /// A folder the cart watches for commands (`bump`).
+        /// A folder the cart watches for commands (`bump`, `take-target`).
         #[arg(long)]
         control: Option<PathBuf>,
     },
@@ -84,6 +84,14 @@ enum Command {
         /// The turn, degrees: roll,pitch,yaw.
         #[arg(long, value_delimiter = ',', default_value = "0,0,0")]
         rpy_deg: Vec<f64>,
+    },
+    /// Take the target away: every cart started with this control folder
+    /// renders the scene without it from its next frame on, as when the board
+    /// is carried off after calibration.
+    TakeTarget {
+        /// The folder the carts were started with (`run --control`).
+        #[arg(long)]
+        control: PathBuf,
     },
 }
 
@@ -159,6 +167,13 @@ fn main() -> std::process::ExitCode {
                 std::fs::rename(&tmp, &file)
                     .with_context(|| format!("cannot write {}", file.display()))?;
                 println!("{}", serde_json::json!({ "bump": file }));
+                Ok(())
+            }
+            Command::TakeTarget { control } => {
+                let file = cart::target_taken_file(&control);
+                std::fs::write(&file, "")
+                    .with_context(|| format!("cannot write {}", file.display()))?;
+                println!("{}", serde_json::json!({ "target_taken": file }));
                 Ok(())
             }
         }

@@ -82,9 +82,25 @@ pub fn scene_geometry(
     scene: &Scene,
     file: &Path,
 ) -> Result<(SceneGeometry, TargetModel, Iso3), SimError> {
+    build_geometry(scene, file, true)
+}
+
+/// The scene's geometry once the target is taken away (table and boxes).
+pub fn scene_geometry_without_target(
+    scene: &Scene,
+    file: &Path,
+) -> Result<SceneGeometry, SimError> {
+    build_geometry(scene, file, false).map(|(geo, _, _)| geo)
+}
+
+fn build_geometry(
+    scene: &Scene,
+    file: &Path,
+    with_target: bool,
+) -> Result<(SceneGeometry, TargetModel, Iso3), SimError> {
     let (target, base1_from_target) = scene.target_model(file)?;
     let mut geo = SceneGeometry::default();
-    for q in &target.quads {
+    for q in target.quads.iter().filter(|_| with_target) {
         geo.add_quad(
             base1_from_target * q.target_from_quad,
             q.min,
