@@ -32,7 +32,9 @@
 //! a touch-point verification would see: both arms touch each point with a
 //! pointer held straight down (through their true kinematics) and report it
 //! through their nominal kinematics; part of a systematic error could cancel
-//! there, and the study shows how little does.
+//! there, and the study shows how little does. It also runs the default told
+//! the arms' accuracy (`--robot-accuracy-*`: the reported flange poses' RMS
+//! error per axis over the views), and holds that covariance honest.
 //!
 //! `cargo test -p b2b-sim --test error_models -- --nocapture` prints the table.
 
@@ -653,6 +655,43 @@ struct CellResult {
     clean_rejected: usize,
     /// For `e`: the errors a touch-point verification would see.
     operational: Option<Operational>,
+    /// For `e`: the default with the arms' accuracy given.
+    accuracy_given: Option<AccuracyGiven>,
+}
+
+/// For `e`, the default estimator told the arms' absolute accuracy
+/// (`--robot-accuracy-mm`, `--robot-accuracy-deg`): the RMS per axis of the
+/// reported flange poses' error over the views, at the flange, the larger of
+/// the two arms' (what a spec sheet or a laser-tracker check of the arm
+/// states).
+struct AccuracyGiven {
+    sigma_t_m: f64,
+    sigma_r_rad: f64,
+    true_p95: f64,
+    predicted_p95: f64,
+    coverage: f64,
+    /// Against the touches, as [`Operational`] has them.
+    touch_coverage: f64,
+}
+
+/// The arms' accuracy as [`AccuracyGiven`] takes it.
+fn arm_accuracy(p: &Problem) -> RobotNoise {
+    let (mut t, mut r) = (0.0f64, 0.0f64);
+    for robot in &p.robots {
+        let (mut st, mut sr) = (0.0, 0.0);
+        for (c, truth) in robot.captures.iter().zip(&robot.true_base_from_flange) {
+            let d = truth.inverse() * c.base_from_flange;
+            st += d.translation.vector.norm_squared();
+            sr += d.rotation.scaled_axis().norm_squared();
+        }
+        let n = 3.0 * robot.captures.len() as f64;
+        t = t.max((st / n).sqrt());
+        r = r.max((sr / n).sqrt());
+    }
+    RobotNoise {
+        sigma_t_m: t,
+        sigma_r_rad: r,
+    }
 }
 
 /// The touch-point view of one cell (see [`operational_errors`]).
@@ -680,6 +719,9 @@ fn run_cell(
     let mut covered = 0;
     let mut total_points = 0;
     let (mut op_errors, mut op_covered, mut op_total) = (Vec::new(), 0, 0);
+    let (mut given_errors, mut given_predicted, mut given_covered) = (Vec::new(), 0.0, 0);
+    let (mut given_t, mut given_r) = (0.0, 0.0);
+    let (mut given_touch_covered, mut given_touches) = (0, 0);
     let (mut caught, mut typos, mut clean_rejected) = (0, 0, 0);
     let mut per_seed = Vec::new();
     for s in 0..seeds {
@@ -711,6 +753,27 @@ fn run_cell(
         total_points += errors.len();
         all_errors.extend(errors);
         if structure == Structure::Dh {
+            let accuracy = arm_accuracy(&p);
+            given_t += accuracy.sigma_t_m;
+            given_r += accuracy.sigma_r_rad;
+            let options = RefineOptions {
+                systematic: accuracy,
+                ..RefineOptions::default()
+            };
+            let given = estimate_base_to_base([&inputs[0], &inputs[1]], &options)
+                .expect("default estimator, accuracy given");
+            let errors = touch_errors(
+                &given.estimate.base1_from_base2,
+                &p.base1_from_base2,
+                &points,
+            );
+            let (_, given_p95) = predicted_error(&given.estimate.covariance, &points, 0.0);
+            given_predicted += given_p95;
+            given_covered += errors.iter().filter(|e| **e <= given_p95).count();
+            given_errors.extend(errors);
+            let touched = operational_errors(&p, &given.estimate.base1_from_base2, &points);
+            given_touch_covered += touched.iter().filter(|e| **e <= given_p95).count();
+            given_touches += touched.len();
             let e = operational_errors(&p, &est, &points);
             op_covered += e.iter().filter(|v| **v <= p95).count();
             op_total += 27;
@@ -753,6 +816,15 @@ fn run_cell(
         reached: op_errors.len() as f64 / op_total as f64,
     });
     let sf = seeds as f64;
+    given_errors.sort_by(f64::total_cmp);
+    let accuracy_given = (!given_errors.is_empty()).then(|| AccuracyGiven {
+        sigma_t_m: given_t / sf,
+        sigma_r_rad: given_r / sf,
+        true_p95: given_errors[((given_errors.len() - 1) as f64 * 0.95).round() as usize],
+        predicted_p95: given_predicted / sf,
+        coverage: given_covered as f64 / given_errors.len() as f64,
+        touch_coverage: given_touch_covered as f64 / given_touches.max(1) as f64,
+    });
     CellResult {
         per_seed,
         default_mean: default_sum / sf,
@@ -766,6 +838,7 @@ fn run_cell(
         typos_total: typos,
         clean_rejected,
         operational,
+        accuracy_given,
     }
 }
 
@@ -786,6 +859,9 @@ fn study(structure: Structure) {
     let mut lines = Vec::new();
     let mut op_lines = Vec::new();
     let mut op_pooled = Vec::new();
+    let mut given_lines = Vec::new();
+    let mut given_pooled = Vec::new();
+    let mut given_touch_pooled = Vec::new();
     let mut failures = Vec::new();
     let (mut covered, mut cells) = (0.0, 0.0);
     let mut below_truth = Vec::new();
@@ -830,6 +906,28 @@ fn study(structure: Structure) {
                     },
                 ));
                 let _ = r.closed_failed;
+                if let Some(g) = &r.accuracy_given {
+                    given_lines.push(format!(
+                        "| {cell} | {:.3} mm, {:.4}° | {:.3} / {:.3} | {:.2} | {:.0}% | {:.0}% |",
+                        g.sigma_t_m * 1e3,
+                        g.sigma_r_rad.to_degrees(),
+                        g.true_p95 * 1e3,
+                        g.predicted_p95 * 1e3,
+                        g.predicted_p95 / g.true_p95,
+                        g.coverage * 100.0,
+                        g.touch_coverage * 100.0
+                    ));
+                    given_touch_pooled.push(g.touch_coverage);
+                    given_pooled.push(g.coverage);
+                    // With the accuracy given, honest as the other structures are.
+                    if g.predicted_p95 < 0.75 * g.true_p95 || g.predicted_p95 > 2.0 * g.true_p95 {
+                        failures.push(format!(
+                            "{cell}, accuracy given: predicted p95 {:.4} mm against a true p95 of {:.4} mm",
+                            g.predicted_p95 * 1e3,
+                            g.true_p95 * 1e3
+                        ));
+                    }
+                }
                 if let Some(o) = &r.operational {
                     op_lines.push(format!(
                         "| {cell} | {:.3} | {:.3} / {:.3} | {:.0}% | {:.0}% |",
@@ -923,6 +1021,32 @@ fn study(structure: Structure) {
         "pooled coverage of the predicted p95: {:.1}%",
         pooled * 100.0
     );
+    if !given_lines.is_empty() {
+        eprintln!(
+            "\nWith the arms' accuracy given (--robot-accuracy-mm/-deg: the reported flange poses' RMS error per axis over the views, the larger arm's):"
+        );
+        eprintln!(
+            "| cell | accuracy given | true / predicted p95 mm | predicted / true | inside p95 | touches inside p95 |"
+        );
+        for l in &given_lines {
+            eprintln!("{l}");
+        }
+        let given = given_pooled.iter().sum::<f64>() / given_pooled.len() as f64;
+        eprintln!(
+            "pooled coverage with the accuracy given: {:.1}%",
+            100.0 * given
+        );
+        let touches = given_touch_pooled.iter().sum::<f64>() / given_touch_pooled.len() as f64;
+        eprintln!(
+            "pooled coverage against the touches with the accuracy given: {:.1}%",
+            100.0 * touches
+        );
+        if !(0.90..=0.995).contains(&given) || touches < 0.90 {
+            failures.push(format!(
+                "pooled coverage with the accuracy given {given}, against the touches {touches}"
+            ));
+        }
+    }
     if !op_pooled.is_empty() {
         // The touch-point view does not rescue it: the touches stand in other
         // configurations than the views, so little of the error cancels.
