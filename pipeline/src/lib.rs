@@ -718,7 +718,7 @@ impl RobotSetup {
     }
 
     /// Target `index` ([`Dataset::target_index`]) and its points.
-    fn target_at(&self, index: usize) -> (&TargetSpec, &[Point3<f64>]) {
+    pub fn target_at(&self, index: usize) -> (&TargetSpec, &[Point3<f64>]) {
         match index.checked_sub(1).and_then(|k| self.others.get(k)) {
             Some((t, points)) => (t, points),
             None => (&self.target, &self.board_points),

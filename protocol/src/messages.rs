@@ -266,6 +266,12 @@ pub struct BoardObservation {
     /// replay) predicts touch errors around this one point.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target_centre: Option<[f64; 3]>,
+    /// Which target this is when a cell has several: its id among the
+    /// dataset's further `targets`; `None` (the default): the main target.
+    /// Robots that see different targets are placed through robots that see
+    /// several; observations of one id are of one physical target.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target: Option<String>,
 }
 
 /// One capture: the flange pose (with the controller's timestamp), the board
@@ -417,6 +423,14 @@ impl Validate for Capture {
                 if let Some(c) = &o.target_centre {
                     finite("observation.target_centre", c)?;
                 }
+                if let Some(id) = &o.target
+                    && (id.is_empty() || id.len() > 64 || id.chars().any(char::is_control))
+                {
+                    return Err(ProtocolError::BadField {
+                        field: "observation.target".into(),
+                        reason: format!("{id:?} is not a target id (1-64 printable characters)"),
+                    });
+                }
                 finite("observation.pixels", &o.pixels.concat())?;
                 finite("observation.residuals_px", &o.residuals_px)?;
                 finite("observation.rms_px", &[o.rms_px])
@@ -548,6 +562,7 @@ mod tests {
                 residuals_px: vec![0.1; 4],
                 rms_px: 0.1,
                 target_centre: Some([0.1, 0.05, 0.0]),
+                target: None,
             }),
             rejected: None,
             base_from_target: None,
@@ -589,6 +604,18 @@ mod tests {
         let mut c = capture();
         c.rejected = Some("blur".into());
         assert!(Envelope::new("robot1", 1, c).validate("robot1").is_err());
+        // A further target is named by a printable id.
+        for (id, ok) in [("side", true), ("", false), ("a\nb", false)] {
+            let mut c = capture();
+            if let Some(o) = c.observation.as_mut() {
+                o.target = Some(id.into());
+            }
+            let checked = Envelope::new("robot1", 1, c).validate("robot1");
+            assert_eq!(checked.is_ok(), ok, "{id:?}: {checked:?}");
+            if let Err(e) = checked {
+                assert!(e.to_string().contains("observation.target"), "{e}");
+            }
+        }
     }
 
     fn features() -> FeatureSet {

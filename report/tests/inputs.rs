@@ -147,6 +147,7 @@ fn richer_inputs_add_plots_and_the_output_is_deterministic() {
             residuals_px: vec![0.1; 4],
             rms_px: 0.1,
             target_centre: None,
+            target: None,
         }),
         rejected: None,
         base_from_target: None,

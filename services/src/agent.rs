@@ -149,6 +149,9 @@ pub struct SourceCapture {
     pub features: Option<b2b_protocol::messages::FeatureSet>,
     /// The centre of the whole target in its frame (all its model points).
     pub target_centre: nalgebra::Point3<f64>,
+    /// Which of the dataset's further `targets` the capture is of (`None`:
+    /// the main target; live sources observe that one).
+    pub target: Option<String>,
 }
 
 /// Where captures come from: a dataset replay, the simulated cart, or a real arm.
@@ -268,7 +271,8 @@ impl CaptureSource for ReplaySource {
             observed: observe_capture(&self.ds, &self.setup, cap),
             pixels: None,
             features,
-            target_centre: self.setup.target.centre(),
+            target_centre: self.setup.target_at(self.ds.target_index(cap)).0.centre(),
+            target: cap.target.clone(),
         }))
     }
 }
@@ -287,7 +291,11 @@ pub fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
     }
 }
 
-fn board_observation(o: &Observation, target_centre: &nalgebra::Point3<f64>) -> BoardObservation {
+fn board_observation(
+    o: &Observation,
+    target_centre: &nalgebra::Point3<f64>,
+    target: Option<&str>,
+) -> BoardObservation {
     BoardObservation {
         target_points: o
             .board
@@ -300,6 +308,7 @@ fn board_observation(o: &Observation, target_centre: &nalgebra::Point3<f64>) -> 
         residuals_px: o.residuals_px.clone(),
         rms_px: o.pnp_rms_px,
         target_centre: Some(target_centre.coords.into()),
+        target: target.map(str::to_owned),
     }
 }
 
@@ -606,7 +615,14 @@ fn progress_bar(show: bool, expected: Option<u64>, robot: &str) -> indicatif::Pr
 /// or the reason there is none.
 fn capture_message(cap: &SourceCapture) -> Capture {
     let (observation, rejected) = match &cap.observed {
-        Ok(o) => (Some(board_observation(o, &cap.target_centre)), None),
+        Ok(o) => (
+            Some(board_observation(
+                o,
+                &cap.target_centre,
+                cap.target.as_deref(),
+            )),
+            None,
+        ),
         Err(r) => (None, Some(r.reason.clone())),
     };
     Capture {

@@ -617,6 +617,7 @@ impl LiveSource {
                         pixels: None,
                         features: None,
                         target_centre: self.target.centre(),
+                        target: None,
                     });
                 }
             };
@@ -695,6 +696,7 @@ impl LiveSource {
             pixels: Some(frame.grey.clone()),
             features: None,
             target_centre: self.target.centre(),
+            target: None,
         }
     }
 

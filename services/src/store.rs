@@ -21,6 +21,9 @@ use nalgebra::{Point2, Point3};
 use serde::{Deserialize, Serialize};
 
 /// Everything the coordinator keeps.
+// Most samples are captures, each moved once into the store: boxing them
+// would add an allocation to the common case to save stack on the rare one.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Sample {
@@ -398,11 +401,18 @@ impl Store {
     /// targets). Captures from agents that do not report it fall back to the
     /// mean of every distinct corner seen, with a warning.
     pub fn target_centre(&self, robots: &[&str]) -> anyhow::Result<Point3<f64>> {
+        // With several targets, the first of them any of these robots saw
+        // (the main target when seen: the pipeline numbers them so).
+        let first = self
+            .target_ids(robots)
+            .into_iter()
+            .min_by_key(|(_, index)| *index)
+            .and_then(|(id, _)| id);
         let mut reported: Option<(String, u64, [f64; 3])> = None;
         let mut missing = 0usize;
         for robot in robots {
             for (index, cap) in self.usable(robot).0 {
-                let Some(o) = &cap.observation else {
+                let Some(o) = cap.observation.as_ref().filter(|o| o.target == first) else {
                     continue;
                 };
                 match (&reported, o.target_centre) {
@@ -452,8 +462,32 @@ impl Store {
         Ok(Point3::from(sum / seen.len() as f64))
     }
 
-    /// A robot's captures as the pipeline takes them.
+    /// Every target the captures of `robots` saw, numbered as the pipeline
+    /// numbers a dataset's: the main target (`None`) 0, the further ones by
+    /// id from 1.
+    fn target_ids(&self, robots: &[&str]) -> BTreeMap<Option<String>, usize> {
+        let mut ids: Vec<Option<String>> = robots
+            .iter()
+            .flat_map(|r| self.usable(r).0)
+            .filter_map(|(_, c)| c.observation.as_ref().map(|o| o.target.clone()))
+            .collect();
+        ids.sort();
+        ids.dedup();
+        // `None` sorts first; the further targets follow it from 1.
+        let further = ids.iter().filter(|id| id.is_some()).cloned();
+        std::iter::once((None, 0))
+            .chain(further.zip(1..))
+            .filter(|(id, _)| ids.contains(id))
+            .collect()
+    }
+
+    /// A robot's captures as the pipeline takes them; with several targets
+    /// each observation's target numbered over every robot's (see
+    /// [`Store::target_ids`]).
     pub fn observations(&self, robot: &str) -> anyhow::Result<RobotObservations> {
+        let robots = self.robots();
+        let names: Vec<&str> = robots.iter().map(String::as_str).collect();
+        let targets = self.target_ids(&names);
         let (caps, mut rejected) = self.usable(robot);
         let (_, first) = caps
             .first()
@@ -502,7 +536,7 @@ impl Store {
                         base_from_flange: cap.base_from_flange.to_isometry("T_base_flange")?,
                         target_points: o.target_points.iter().map(|p| Point3::from(*p)).collect(),
                         pixels: o.pixels.iter().map(|p| Point2::from(*p)).collect(),
-                        target: 0,
+                        target: targets.get(&o.target).copied().unwrap_or(0),
                     },
                     pnp_rms_px: o.rms_px,
                     residuals_px: o.residuals_px.clone(),
@@ -606,6 +640,7 @@ mod tests {
                 residuals_px: vec![0.0; 4],
                 rms_px: 0.0,
                 target_centre: None,
+                target: None,
             }),
             rejected: None,
             base_from_target: None,

@@ -799,6 +799,7 @@ mod tests {
                 residuals_px: vec![0.1; 4],
                 rms_px: 0.1,
                 target_centre: Some([0.1, 0.06, 0.0]),
+                target: None,
             }),
             rejected: (!seen).then(|| "board not found".to_owned()),
             base_from_target: None,

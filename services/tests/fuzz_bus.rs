@@ -63,6 +63,7 @@ fn capture() -> Envelope<Capture> {
                 residuals_px: vec![0.1; 6],
                 rms_px: 0.1,
                 target_centre: Some([0.025, 0.0125, 0.0]),
+                target: None,
             }),
             rejected: None,
             base_from_target: None,

@@ -145,6 +145,46 @@ fn three_agents_live_match_the_offline_three_robot_calibration() {
     );
 }
 
+/// Robots that do not all see one target, live: robot 1 sees the dataset's
+/// `target`, robot 3 only a second board (`targets.side`), robot 2 both
+/// (pose-only rows, `b2b_sim::pose_only::write_two_targets`). Each agent's
+/// observations name the target they are of; the coordinator places robot 3
+/// through robot 2, as `coordinator calibrate` does offline.
+#[test]
+fn agents_that_see_different_targets_live_match_the_offline_calibration() {
+    let net = net();
+    let data = net.dir.path().join("two-targets");
+    b2b_sim::pose_only::write_two_targets(&data, 41, true).unwrap();
+    let mut c = coordinator_of(&net, "board", "robot1,robot2,robot3");
+    let mut agents: Vec<(Child, &str)> = ["robot1", "robot2", "robot3"]
+        .into_iter()
+        .map(|r| (agent_on(&net, &data, r, 0), r))
+        .collect();
+    wait(&mut c, "coordinator", Duration::from_secs(180));
+    for (a, r) in &mut agents {
+        wait(a, &format!("agent {r}"), Duration::from_secs(60));
+    }
+    let live = read_result(&net);
+    let offline = offline_result_of(net.dir.path(), &data, "board");
+    assert_same(&live, &offline);
+    assert_eq!(
+        live.bases.keys().collect::<Vec<_>>(),
+        ["robot2", "robot3"],
+        "{live:?}"
+    );
+    for (id, base) in &live.bases {
+        let other = &offline.bases[id];
+        for i in 0..3 {
+            assert!(
+                (base.ref_from_base.t[i] - other.ref_from_base.t[i]).abs() < 1e-9,
+                "{id}: {:?} live, {:?} offline",
+                base.ref_from_base.t,
+                other.ref_from_base.t
+            );
+        }
+    }
+}
+
 /// The RGB-D method live: each agent detects SIFT features in its colour images,
 /// lifts them with its depth images and publishes them; the coordinator matches
 /// across the robots and gives the offline `calibrate --method rgbd` result.

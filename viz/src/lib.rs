@@ -1097,6 +1097,7 @@ mod tests {
             residuals_px: vec![0.0; 12],
             rms_px: 0.0,
             target_centre: None,
+            target: None,
         };
         let back = reproject(&obs, &cam).unwrap();
         for (a, b) in back.iter().zip(&pixels) {

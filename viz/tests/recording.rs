@@ -46,6 +46,7 @@ fn capture(index: u64, rejected: bool) -> Capture {
         residuals_px: vec![0.3; 6],
         rms_px: 0.3 + index as f64 * 0.01,
         target_centre: None,
+        target: None,
     };
     Capture {
         index,
