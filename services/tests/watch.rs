@@ -179,9 +179,10 @@ fn quiet_then_bumped(
     assert!(armed.is_some(), "never armed: {seen:#?}");
     let quiet = wait_for(lines, "ALARM", Duration::from_secs(quiet_s), &mut seen);
     assert!(quiet.is_none(), "a false alarm: {seen:#?}");
-    if take_target {
+    // A command to the simulated carts of `control`.
+    let command = |args: &[&str]| {
         let out = Command::new(sim_cart())
-            .arg("take-target")
+            .args(args)
             .arg("--control")
             .arg(control)
             .output()
@@ -191,20 +192,12 @@ fn quiet_then_bumped(
             "{}",
             String::from_utf8_lossy(&out.stderr)
         );
+    };
+    if take_target {
+        command(&["take-target"]);
     }
     let bumped = Instant::now();
-    let out = Command::new(sim_cart())
-        .args(["bump", "--robot", "robot2"])
-        .args(bump)
-        .arg("--control")
-        .arg(control)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    command(&[&["bump", "--robot", "robot2"], bump].concat());
     let alarm_at = wait_for(lines, "ALARM", Duration::from_secs(30), &mut seen)
         .unwrap_or_else(|| panic!("no alarm after the bump: {seen:#?}"));
     (bumped, alarm_at, seen)
