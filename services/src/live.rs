@@ -200,9 +200,29 @@ pub enum WatchObserve {
     /// target is left in view).
     Features,
     /// Both: the coordinator watches the target while it is in view and the
-    /// scene's features where it is not.
+    /// scene's features where it is not. Once the target has been missing
+    /// from [`LOOK_EVERY_WHEN_GONE`] frames in a row it is looked for in
+    /// every that-many-th frame only: a failed search is the detector's
+    /// slowest case, and the scene's frames should keep their rate.
     Auto,
 }
+
+/// Whether a watch frame is searched for the target, after `missing`
+/// frames in a row without it (the features-only watch never searches).
+pub fn looks_for_target(observe: WatchObserve, missing: usize) -> bool {
+    match observe {
+        WatchObserve::Features => false,
+        WatchObserve::Target => true,
+        WatchObserve::Auto => {
+            missing < LOOK_EVERY_WHEN_GONE || missing.is_multiple_of(LOOK_EVERY_WHEN_GONE)
+        }
+    }
+}
+
+/// In [`WatchObserve::Auto`], how many frames the target must have been
+/// missing from before it is looked for in only one frame in this many
+/// (at 5 Hz: once a second, so a target put back is seen within a second).
+pub const LOOK_EVERY_WHEN_GONE: usize = 5;
 
 /// The live source.
 pub struct LiveSource {
@@ -467,15 +487,34 @@ impl LiveSource {
         // newest one not yet looked at, so a moved cart shows up in the first
         // frame the camera exposes after the move, not one frame later.
         let mut after_ns = self.wait_still()?;
+        // Frames in a row without the target.
+        let mut missing = 0usize;
         while !stop.load(Ordering::SeqCst) {
             let started = Instant::now();
             row += 1;
             match self.watch_frame(after_ns) {
                 Ok((frame, q, t)) => {
                     after_ns = frame.timestamp_ns + 1;
+                    let gone = !looks_for_target(observe, missing);
                     let mut capture = match observe {
+                        WatchObserve::Auto if gone => {
+                            missing += 1;
+                            let observed = Err(self.reject(
+                                row,
+                                format!(
+                                    "the target has been out of view for {missing} frames: looked for in every {LOOK_EVERY_WHEN_GONE}th"
+                                ),
+                            ));
+                            self.frame_capture(&frame, self.arm.fk(&q), t, row, observed)
+                        }
                         WatchObserve::Target | WatchObserve::Auto => {
-                            self.look(&frame, &q, t, row, &progress).0
+                            let capture = self.look(&frame, &q, t, row, &progress).0;
+                            missing = if capture.observed.is_ok() {
+                                0
+                            } else {
+                                missing + 1
+                            };
+                            capture
                         }
                         // No target detection: the frame's time goes to its features.
                         WatchObserve::Features => {
@@ -1064,5 +1103,22 @@ impl FrameSource for IceoryxFrames {
 
     fn dropped(&self) -> u64 {
         self.subscriber.stats().dropped + self.depth.as_ref().map_or(0, |d| d.stats().dropped)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Auto searches every frame while the target is in view, and one frame
+    /// in five once it has been gone for five; the other modes always or never.
+    #[test]
+    fn the_watch_looks_for_a_gone_target_once_in_five_frames() {
+        let looked: Vec<usize> = (0..20)
+            .filter(|&m| looks_for_target(WatchObserve::Auto, m))
+            .collect();
+        assert_eq!(looked, [0, 1, 2, 3, 4, 5, 10, 15]);
+        assert!((0..20).all(|m| looks_for_target(WatchObserve::Target, m)));
+        assert!((0..20).all(|m| !looks_for_target(WatchObserve::Features, m)));
     }
 }
