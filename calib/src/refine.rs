@@ -478,6 +478,11 @@ pub(crate) struct EngineSolution {
 struct Engine {
     reference_poses: Vec<Iso3>,
     reference_cameras: Vec<CameraModel>,
+    /// The cameras as the fit started: where the `k2`/`k3` prior
+    /// ([`distortion_prior`]) holds them, and its scale. Unlike
+    /// `reference_cameras` never recentred, so the prior stays put over the
+    /// rounds.
+    prior_cameras: Vec<CameraModel>,
     refine_intrinsics: bool,
     captures: Vec<CaptureModel>,
     /// Per capture, the whitening of its residuals by their covariance (pixel
@@ -722,9 +727,9 @@ impl Engine {
             rss += rc.norm_squared();
         }
         if self.refine_intrinsics {
-            for (c, cam) in cameras.iter().enumerate() {
-                let start = self.reference_cameras[c].params();
-                for (index, sigma) in distortion_prior(cam) {
+            for (c, (cam, prior)) in cameras.iter().zip(&self.prior_cameras).enumerate() {
+                let start = prior.params();
+                for (index, sigma) in distortion_prior(prior) {
                     let i = 6 * poses.len() + N_INTRINSICS * c + index;
                     let r = (cam.params()[index] - start[index]) / sigma;
                     jtj[(i, i)] += 1.0 / (sigma * sigma);
@@ -1487,6 +1492,7 @@ pub(crate) fn solve(
     }
     let mut engine = Engine {
         reference_poses: poses,
+        prior_cameras: cameras.clone(),
         reference_cameras: cameras,
         refine_intrinsics: options.refine_intrinsics,
         captures,

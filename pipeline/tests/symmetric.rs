@@ -248,11 +248,12 @@ fn far_upright_symmetric_board_without_intrinsics() {
         // distortion beyond it is held by the prior
         // (b2b_calib::refine::DISTORTION_PRIOR_PX), not an extrapolated
         // polynomial. Measured: the image's corners and edge midpoints at most
-        // 16.6 and 6.8 px from where the true camera puts them; 351 and 1507 px
-        // with the prior switched off (its 10 px made 1e9). 1.5x here.
+        // 8.1 and 4.6 px from where the true camera puts them (16.6 and 6.8 px
+        // while the prior's centre moved with each round's estimate); 351 and
+        // 1507 px with the prior switched off (its 10 px made 1e9). 1.5x here.
         let worst = far_from_truth_px(c, &truth_camera);
         eprintln!("  the image's corners and edges: at most {worst:.1} px from the truth");
-        assert!(worst < 25.0, "{worst} px");
+        assert!(worst < 12.2, "{worst} px");
         assert_eq!(
             cam.estimated.as_ref().map(|e| e.terms),
             Some(b2b_vision::DistortionTerms::K1)
