@@ -495,35 +495,26 @@ impl LiveSource {
             match self.watch_frame(after_ns) {
                 Ok((frame, q, t)) => {
                     after_ns = frame.timestamp_ns + 1;
-                    let gone = !looks_for_target(observe, missing);
-                    let mut capture = match observe {
-                        WatchObserve::Auto if gone => {
+                    let mut capture = if looks_for_target(observe, missing) {
+                        let capture = self.look(&frame, &q, t, row, &progress).0;
+                        missing = if capture.observed.is_ok() {
+                            0
+                        } else {
+                            missing + 1
+                        };
+                        capture
+                    } else {
+                        // No search: the frame's time goes to its features.
+                        let why = if observe == WatchObserve::Features {
+                            "watching the scene's features, not the target".into()
+                        } else {
                             missing += 1;
-                            let observed = Err(self.reject(
-                                row,
-                                format!(
-                                    "the target has been out of view for {missing} frames: looked for in every {LOOK_EVERY_WHEN_GONE}th"
-                                ),
-                            ));
-                            self.frame_capture(&frame, self.arm.fk(&q), t, row, observed)
-                        }
-                        WatchObserve::Target | WatchObserve::Auto => {
-                            let capture = self.look(&frame, &q, t, row, &progress).0;
-                            missing = if capture.observed.is_ok() {
-                                0
-                            } else {
-                                missing + 1
-                            };
-                            capture
-                        }
-                        // No target detection: the frame's time goes to its features.
-                        WatchObserve::Features => {
-                            let observed = Err(self.reject(
-                                row,
-                                "watching the scene's features, not the target".into(),
-                            ));
-                            self.frame_capture(&frame, self.arm.fk(&q), t, row, observed)
-                        }
+                            format!(
+                                "the target has been out of view for {missing} frames: looked for in every {LOOK_EVERY_WHEN_GONE}th"
+                            )
+                        };
+                        let observed = Err(self.reject(row, why));
+                        self.frame_capture(&frame, self.arm.fk(&q), t, row, observed)
                     };
                     if observe != WatchObserve::Target {
                         capture.features = self.features(&frame);

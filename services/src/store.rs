@@ -20,6 +20,14 @@ use b2b_protocol::messages::{AgentState, AgentStatus, Capture, Envelope, HandEye
 use nalgebra::{Point2, Point3};
 use serde::{Deserialize, Serialize};
 
+/// The number of `target` (`None`: the main one, 0) among `further`, the
+/// further targets seen ([`Store::further_targets`]).
+fn target_number(further: &std::collections::BTreeSet<String>, target: Option<&str>) -> usize {
+    target.map_or(0, |id| {
+        1 + further.iter().take_while(|t| t.as_str() != id).count()
+    })
+}
+
 /// Everything the coordinator keeps.
 // Most samples are captures, each moved once into the store: boxing them
 // would add an allocation to the common case to save stack on the rare one.
@@ -403,11 +411,17 @@ impl Store {
     pub fn target_centre(&self, robots: &[&str]) -> anyhow::Result<Point3<f64>> {
         // With several targets, the first of them any of these robots saw
         // (the main target when seen: the pipeline numbers them so).
-        let first = self
-            .target_ids(robots)
-            .into_iter()
-            .min_by_key(|(_, index)| *index)
-            .and_then(|(id, _)| id);
+        let main_seen = robots.iter().any(|r| {
+            self.usable(r)
+                .0
+                .iter()
+                .any(|(_, c)| c.observation.as_ref().is_some_and(|o| o.target.is_none()))
+        });
+        let first = if main_seen {
+            None
+        } else {
+            self.further_targets(robots).into_iter().next()
+        };
         let mut reported: Option<(String, u64, [f64; 3])> = None;
         let mut missing = 0usize;
         for robot in robots {
@@ -462,32 +476,25 @@ impl Store {
         Ok(Point3::from(sum / seen.len() as f64))
     }
 
-    /// Every target the captures of `robots` saw, numbered as the pipeline
-    /// numbers a dataset's: the main target (`None`) 0, the further ones by
-    /// id from 1.
-    fn target_ids(&self, robots: &[&str]) -> BTreeMap<Option<String>, usize> {
-        let mut ids: Vec<Option<String>> = robots
+    /// The further targets (by id) the captures of `robots` saw, in order:
+    /// an observation of target `id` is numbered 1 + its place here, one of
+    /// the main target 0 ([`target_number`]), as the pipeline numbers a
+    /// dataset's.
+    fn further_targets(&self, robots: &[&str]) -> std::collections::BTreeSet<String> {
+        robots
             .iter()
             .flat_map(|r| self.usable(r).0)
-            .filter_map(|(_, c)| c.observation.as_ref().map(|o| o.target.clone()))
-            .collect();
-        ids.sort();
-        ids.dedup();
-        // `None` sorts first; the further targets follow it from 1.
-        let further = ids.iter().filter(|id| id.is_some()).cloned();
-        std::iter::once((None, 0))
-            .chain(further.zip(1..))
-            .filter(|(id, _)| ids.contains(id))
+            .filter_map(|(_, c)| c.observation.as_ref()?.target.clone())
             .collect()
     }
 
     /// A robot's captures as the pipeline takes them; with several targets
     /// each observation's target numbered over every robot's (see
-    /// [`Store::target_ids`]).
+    /// [`Store::further_targets`]).
     pub fn observations(&self, robot: &str) -> anyhow::Result<RobotObservations> {
         let robots = self.robots();
         let names: Vec<&str> = robots.iter().map(String::as_str).collect();
-        let targets = self.target_ids(&names);
+        let further = self.further_targets(&names);
         let (caps, mut rejected) = self.usable(robot);
         let (_, first) = caps
             .first()
@@ -536,7 +543,7 @@ impl Store {
                         base_from_flange: cap.base_from_flange.to_isometry("T_base_flange")?,
                         target_points: o.target_points.iter().map(|p| Point3::from(*p)).collect(),
                         pixels: o.pixels.iter().map(|p| Point2::from(*p)).collect(),
-                        target: targets.get(&o.target).copied().unwrap_or(0),
+                        target: target_number(&further, o.target.as_deref()),
                     },
                     pnp_rms_px: o.rms_px,
                     residuals_px: o.residuals_px.clone(),

@@ -662,15 +662,14 @@ pub fn watch_command(
                     features,
                     with_target,
                 } => {
-                    if *with_target {
-                        eprintln!(
-                            "{robot}: frame {index} is the scene's reference ({features} features with depth), taken with the target in view"
-                        );
+                    let taken = if *with_target {
+                        "with the target in view"
                     } else {
-                        eprintln!(
-                            "{robot}: frame {index} is the scene's reference ({features} features with depth), taken without the target: a move before it is not seen"
-                        );
-                    }
+                        "without the target: a move before it is not seen"
+                    };
+                    eprintln!(
+                        "{robot}: frame {index} is the scene's reference ({features} features with depth), taken {taken}"
+                    );
                 }
                 WatchEvent::Learning {
                     robot,
