@@ -2466,9 +2466,25 @@ pub fn verify_pair(
             procrustes_angular_error_deg: m.procrustes_angular_rad.to_degrees(),
             within_predicted_p95: m.within_predicted_p95,
             iso9283: repeated_locations(&a_from_b, touches)?,
+            bound_check: Some(touch_bound_check(&m.bound_check)),
         },
         m,
     ))
+}
+
+/// The touch check as `verify --json` writes it.
+fn touch_bound_check(b: &b2b_calib::metrics::BoundCheck) -> b2b_protocol::TouchBoundCheck {
+    b2b_protocol::TouchBoundCheck {
+        offset_chi2: b.offset.chi2,
+        offset_dof: b.offset.dof,
+        offset_p: b.offset.p_value,
+        scatter_chi2: b.scatter.chi2,
+        scatter_dof: b.scatter.dof,
+        scatter_p: b.scatter.p_value,
+        beyond_chance: b.beyond_chance(),
+        offset_sigma_mm: b.offset_sigma_m * 1e3,
+        scatter_sigma_mm: b.scatter_sigma_m * 1e3,
+    }
 }
 
 /// ISO 9283 AP and RP per location touched at least twice, in the order the

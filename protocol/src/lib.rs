@@ -363,6 +363,32 @@ pub struct VerifyReport {
     /// of the JSON) without repeated locations.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub iso9283: Vec<LocationIso9283>,
+    /// All touches at once against the result's error model: the result's
+    /// error as the touches see it (against its covariance) and their scatter
+    /// about it (against the tip noise). Absent in files of older versions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bound_check: Option<TouchBoundCheck>,
+}
+
+/// See [`VerifyReport::bound_check`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TouchBoundCheck {
+    pub offset_chi2: f64,
+    pub offset_dof: usize,
+    /// How often a right error model gives an offset this large.
+    pub offset_p: f64,
+    pub scatter_chi2: f64,
+    pub scatter_dof: usize,
+    pub scatter_p: f64,
+    /// Either p below 0.005 (1% of right models are called wrong).
+    pub beyond_chance: bool,
+    /// The error per axis common to each arm (mm) that would bring the
+    /// offset to its expected size (0 when it fits): a rough size for
+    /// `--robot-accuracy-mm`.
+    pub offset_sigma_mm: f64,
+    /// The error per axis, arm and touch (mm) beyond the tip noise (0 when
+    /// the scatter fits).
+    pub scatter_sigma_mm: f64,
 }
 
 /// ISO 9283 figures of one repeatedly touched location.

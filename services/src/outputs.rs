@@ -392,6 +392,7 @@ pub fn print_verification(
         "within predicted 95% bound: {:.0}%",
         report.within_predicted_p95 * 100.0
     );
+    println!("{}", metrics.bound_check.describe());
     for l in &report.iso9283 {
         println!(
             "ISO 9283, location {} ({} touches): AP {:.3} mm, RP {:.3} mm",

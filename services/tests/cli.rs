@@ -196,20 +196,26 @@ fn calibrate_then_verify_writes_conforming_files() {
     assert!((1.0..1.07 * 1.5).contains(&factor), "{line}");
     assert!(line.contains("about 1.51x with 24 captures"), "{line}");
     let json = tmp.path().join("VERIFY.json");
-    let out = coordinator()
-        .args(["verify", "--result"])
-        .arg(&result)
-        .arg("--touch-points")
-        .arg(ds.join("touch_points.csv"))
-        .arg("--json")
-        .arg(&json)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    // `coordinator verify` of the result against the set's touches, with
+    // `tip` (mm) given; its printout.
+    let verify = |tip: &str| {
+        let out = coordinator()
+            .args(["verify", "--tip-sigma-mm", tip, "--result"])
+            .arg(&result)
+            .arg("--touch-points")
+            .arg(ds.join("touch_points.csv"))
+            .arg("--json")
+            .arg(&json)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    verify("0");
     let r: b2b_protocol::CalibrationResult =
         serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
     r.validate().unwrap();
@@ -240,6 +246,30 @@ fn calibrate_then_verify_writes_conforming_files() {
             assert!((n - 1.0).abs() < 1e-9, "{c:?}");
         }
     }
+    // The touches against the result's error model, with the set's tip noise
+    // (0.2 mm) given: the result's error as the touches see it fits its
+    // covariance (p = 0.04), but the touches scatter about it by about 0.199 mm
+    // per axis per arm beyond the tips (README; within 1.5x): the simulated
+    // arms' DH errors at the touch poses.
+    let printout = verify("0.2");
+    let v: b2b_protocol::VerifyReport =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let check = v.bound_check.expect("the touch check in the JSON");
+    assert_eq!((check.offset_dof, check.scatter_dof), (6, 69), "{check:?}");
+    assert!(
+        (0.005..0.2).contains(&check.offset_p) && check.scatter_p < 0.005 && check.beyond_chance,
+        "{check:?}"
+    );
+    assert!(
+        (0.199 / 1.5..0.199 * 1.5).contains(&check.scatter_sigma_mm),
+        "{check:?}"
+    );
+    assert!(
+        printout.contains("each touch carries about")
+            && printout.contains("which no base calibration removes")
+            && !printout.contains("the result is off by more than its covariance allows"),
+        "{printout}"
+    );
     let inputs = b2b_report::ReportInputs::from_files(&result, Some(&json)).unwrap();
     assert_eq!(
         inputs
