@@ -446,6 +446,26 @@ fn check_verify(v: &VerifyReport) -> Result<(), ReportError> {
             format!("{} is not a fraction in [0, 1]", v.within_predicted_p95),
         ));
     }
+    if let Some(c) = &v.bound_check {
+        for (name, x) in [
+            ("bound_check.offset_chi2", c.offset_chi2),
+            ("bound_check.scatter_chi2", c.scatter_chi2),
+            ("bound_check.offset_sigma_mm", c.offset_sigma_mm),
+            ("bound_check.scatter_sigma_mm", c.scatter_sigma_mm),
+        ] {
+            if !(x.is_finite() && x >= 0.0) {
+                return Err(bad(name, format!("{x} is not a finite number >= 0")));
+            }
+        }
+        for (name, p) in [
+            ("bound_check.offset_p", c.offset_p),
+            ("bound_check.scatter_p", c.scatter_p),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(bad(name, format!("{p} is not a probability")));
+            }
+        }
+    }
     Ok(())
 }
 
@@ -1217,6 +1237,44 @@ fn verify_html(inputs: &ReportInputs) -> String {
     } else {
         "warn"
     };
+    // All touches at once against the result's error model (verify's
+    // `bound_check`; absent in reports of older versions).
+    let (check, check_note) = v.bound_check.as_ref().map_or_else(Default::default, |c| {
+        let row = |what: &str, chi2: f64, dof: usize, p: f64| {
+            let class = if p < 0.005 { "warn" } else { "ok" };
+            format!(
+                "<tr><td>{what}</td><td class=\"{class}\">&chi;&sup2; {chi2:.1} on {dof} dof, \
+                 p = {p:.2e}</td><td>p &ge; 0.005</td></tr>"
+            )
+        };
+        let rows = row(
+            "the result's offset against its covariance",
+            c.offset_chi2,
+            c.offset_dof,
+            c.offset_p,
+        ) + &row(
+            "the touches' scatter against the tip noise",
+            c.scatter_chi2,
+            c.scatter_dof,
+            c.scatter_p,
+        );
+        let mut note = String::new();
+        if c.offset_p < 0.005 {
+            note.push_str(&format!(
+                " The result is off by more than its covariance allows: calibrate again with \
+                 the arms' accuracy (these touches suggest about {:.2} mm).",
+                c.offset_sigma_mm
+            ));
+        }
+        if c.scatter_p < 0.005 {
+            note.push_str(&format!(
+                " The touches scatter by about {:.3} mm per axis per arm beyond the tips' \
+                 noise: noisier tips, or the arms' own error at the touch poses.",
+                c.scatter_sigma_mm
+            ));
+        }
+        (rows, note)
+    });
     format!(
         "<table class=\"num\"><tr><th></th><th>measured</th><th>predicted by the result</th></tr>\
          <tr><td>touches</td><td>{}</td><td></td></tr>\
@@ -1227,8 +1285,8 @@ fn verify_html(inputs: &ReportInputs) -> String {
          <tr><td>Procrustes linear (mm)</td><td>{:.3}</td><td></td></tr>\
          <tr><td>Procrustes angular (&deg;)</td><td>{:.4}</td><td></td></tr>\
          <tr><td>inside each touch's 95% bound</td><td class=\"{class}\">{share:.0}%</td><td>95%</td></tr>\
-         </table><p class=\"small\">The result's prediction covers the transform only; \
-         each touch's bound in verify adds the pointer tips' noise.</p>",
+         {check}</table><p class=\"small\">The result's prediction covers the transform only; \
+         each touch's bound in verify adds the pointer tips' noise.{check_note}</p>",
         v.n,
         v.touch_mean_mm,
         mm(pred.mean),

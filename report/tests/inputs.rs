@@ -97,6 +97,9 @@ fn richer_inputs_add_plots_and_the_output_is_deterministic() {
     assert_eq!(files.plots.len(), 2);
     let html = std::fs::read_to_string(&files.index).unwrap();
     assert!(html.contains("96%"), "within-bound share missing");
+    // The fixture is of an older version, without the touch check: nothing
+    // about it is drawn.
+    assert!(!html.contains("against its covariance"));
 
     let he = HandEyeResult {
         format: HANDEYE_FORMAT.into(),
@@ -245,4 +248,38 @@ fn a_result_with_its_per_capture_fits_draws_every_capture_panel() {
         .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
         .collect();
     assert!(names.iter().any(|n| n == "residuals.svg"), "{names:?}");
+}
+
+/// The touch check of `verify --json` (`bound_check`) is drawn, flagged where
+/// beyond chance with what to do; a p-value that is not a probability is
+/// refused by name.
+#[test]
+fn the_touch_check_is_shown_and_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(fixture("VERIFY.json")).unwrap();
+    let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    v["bound_check"] = serde_json::json!({
+        "offset_chi2": 31.5, "offset_dof": 6, "offset_p": 2.0e-5,
+        "scatter_chi2": 70.0, "scatter_dof": 69, "scatter_p": 0.44,
+        "beyond_chance": true, "offset_sigma_mm": 0.41, "scatter_sigma_mm": 0.0
+    });
+    let verify = dir.path().join("VERIFY.json");
+    std::fs::write(&verify, v.to_string()).unwrap();
+    let inputs = ReportInputs::from_files(&fixture("RESULT.json"), Some(&verify)).unwrap();
+    let files = write_report(&inputs, dir.path()).unwrap();
+    let html = std::fs::read_to_string(&files.index).unwrap();
+    assert!(
+        html.contains("the result's offset against its covariance</td><td class=\"warn\">&chi;&sup2; 31.5 on 6 dof")
+            && html.contains("against the tip noise</td><td class=\"ok\">")
+            && html.contains("these touches suggest about 0.41 mm")
+            && !html.contains("beyond the tips' noise"),
+        "{html}"
+    );
+    v["bound_check"]["scatter_p"] = serde_json::json!(1.5);
+    std::fs::write(&verify, v.to_string()).unwrap();
+    let msg = chain(&ReportInputs::from_files(&fixture("RESULT.json"), Some(&verify)).unwrap_err());
+    assert!(
+        msg.contains("VERIFY.json") && msg.contains("bound_check.scatter_p"),
+        "{msg}"
+    );
 }
