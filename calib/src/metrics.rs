@@ -162,6 +162,22 @@ pub fn bound_check(
     tip_sigma_m: f64,
 ) -> Result<BoundCheck, CalibError> {
     let n = points.len();
+    if n < 3 {
+        return Err(CalibError::TooFewTouches { got: n, need: 3 });
+    }
+    for (len, what) in [
+        (tips2.len(), "robot-2 tips"),
+        (errors.len(), "touch errors"),
+    ] {
+        if len != n {
+            return Err(CalibError::MismatchedLengths {
+                len_a: n,
+                what_a: "touch points",
+                len_b: len,
+                what_b: what,
+            });
+        }
+    }
     let (jtj, jte) =
         points
             .iter()
@@ -218,9 +234,8 @@ pub fn bound_check(
     if !(offset.chi2.is_finite() && scatter.chi2.is_finite()) {
         return Err(CalibError::NonFinite("touch points".into()));
     }
-    // The offset's χ² falls as the common variance grows, and is at most
-    // |δ_t|² / (2 s²) plus the rotation's share: bisect between 0 and the
-    // variance |δ|² that certainly brings it below 6.
+    // The offset's χ² falls as the common variance grows: widen the bracket
+    // until it is below 6 there, then bisect.
     let offset_sigma_m = if chi2 <= 6.0 {
         0.0
     } else {
@@ -682,10 +697,20 @@ mod tests {
         );
     }
 
-    /// Touches on a line do not fix the result's error: a clear error.
+    /// Touches on a line do not fix the result's error, and fewer than three
+    /// or lists of different lengths are refused: clear errors.
     #[test]
     fn touches_on_a_line_are_refused() {
-        let (c, _) = touch_setup();
+        let (c, points) = touch_setup();
+        let e = vec![Vector3::zeros(); 2];
+        let err = check(&c, &points[..2], &e, 0.2e-3).unwrap_err();
+        assert_eq!(err.to_string(), "too few touch pairs: 2, need at least 3");
+        let err = check(&c, &points, &e, 0.2e-3).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("27 touch points but 2 touch errors"),
+            "{err}"
+        );
         let points: Vec<Point3<f64>> = (0..5)
             .map(|k| Point3::new(0.1 * k as f64, 0.0, 0.0))
             .collect();
