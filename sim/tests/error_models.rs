@@ -1024,13 +1024,14 @@ fn run_cell(
 
 const MAGNITUDES: [f64; 3] = [0.5, 2.0, 5.0];
 /// Seeds per cell: every cell is a paired comparison (all methods see the
-/// same captures), so a dozen seeds separate the methods; `B2B_STUDY_SEEDS`
+/// same captures), so a dozen seeds separate the methods; a true p95 needs
+/// more (with twelve it is about the largest of twelve draws). `B2B_STUDY_SEEDS`
 /// runs more.
 fn seeds() -> u64 {
     std::env::var("B2B_STUDY_SEEDS")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(12)
+        .unwrap_or(24)
 }
 
 /// Runs every cell of one structure, prints its rows, asserts, and returns the
@@ -1163,10 +1164,10 @@ fn study(structure: Structure) {
                         ));
                     }
                     // Honest p95: not far below the truth (the goal is at or above;
-                    // see the README for the two cells below, the lowest 0.78x),
+                    // see the README for the one cell below, 0.99x),
                     // not more than twice it.
                     if r.predicted_p95 < r.true_p95 {
-                        below_truth.push(cell.clone());
+                        below_truth.push((cell.clone(), r.predicted_p95 / r.true_p95));
                     }
                     if r.predicted_p95 < 0.75 * r.true_p95 || r.predicted_p95 > 2.0 * r.true_p95 {
                         failures.push(format!(
@@ -1256,12 +1257,13 @@ fn study(structure: Structure) {
     );
     let accepted = accepted_covered as f64 / accepted_points.max(1) as f64;
     if structure == Structure::Dh {
-        // README: the offset found beyond chance in 59 of 144 seeds, the
-        // scatter in 51; the results the verification accepts 78.6% inside
-        // their bound.
-        if offset_flags * 3 < 59 * 2
-            || scatter_flags * 3 < 51 * 2
-            || !(0.786 / 1.5..0.9).contains(&accepted)
+        // README: the offset found beyond chance in 122 of 288 seeds, the
+        // scatter in 104; the results the verification accepts 80.8% inside
+        // their bound. Held within 1.5x.
+        let share = |k: usize| k as f64 / checks as f64;
+        if share(offset_flags) < 122.0 / 288.0 / 1.5
+            || share(scatter_flags) < 104.0 / 288.0 / 1.5
+            || !(0.808 / 1.5..0.9).contains(&accepted)
         {
             failures.push(format!(
                 "DH: offset beyond chance in {offset_flags} of {checks}, scatter in {scatter_flags}, accepted results' coverage {accepted}: update the README"
@@ -1269,7 +1271,7 @@ fn study(structure: Structure) {
         }
     } else if (offset_flags + scatter_flags) * 50 > checks {
         // A right (or conservative) error model is called wrong in 1% of
-        // checks; README: none of 144 per structure.
+        // checks; README: none of 288 per structure.
         failures.push(format!(
             "the verification calls {offset_flags} offsets and {scatter_flags} scatters of {checks} beyond chance"
         ));
@@ -1296,10 +1298,10 @@ fn study(structure: Structure) {
             100.0 * second,
             100.0 * first
         );
-        // README: 79.7% against the truth (below honest: the touches see less
-        // of the error than there is), 93.3% against the second touches (the
-        // first result 75-80%).
-        if !(0.797 / 1.5..0.9).contains(&truth) || second < 0.9 || first > 0.9 {
+        // README: 82.5% against the truth (below honest: the touches see less
+        // of the error than there is), 92.8% against the second touches (the
+        // first result 75.5%).
+        if !(0.825 / 1.5..0.9).contains(&truth) || second < 0.9 || first > 0.9 {
             failures.push(format!(
                 "calibrated again with the verification's accuracy: coverage {truth} against the truth, {second} against a second set of touches (the first result {first}): update the README"
             ));
@@ -1308,10 +1310,10 @@ fn study(structure: Structure) {
     if !op_pooled.is_empty() {
         // The touch-point view does not rescue it: the touches stand in other
         // configurations than the views, so little of the error cancels.
-        // README: 75%; held within 1.5x of it, and below honest.
+        // README: 71.7%; held within 1.5x of it, and below honest.
         let op = op_pooled.iter().sum::<f64>() / op_pooled.len() as f64;
         assert!(
-            (0.75 / 1.5..0.9).contains(&op),
+            (0.717 / 1.5..0.9).contains(&op),
             "DH coverage against touches {op}: update the README"
         );
     }
@@ -1320,17 +1322,17 @@ fn study(structure: Structure) {
         // the split-half check widens the covariance but cannot see the part
         // common to all captures. Pinned down: if this starts to hold, the
         // README's caveat is out of date.
-        // README: 66%; held within 1.5x of it, and below honest.
+        // README: 63%; held within 1.5x of it, and below honest.
         assert!(
-            (0.66 / 1.5..0.9).contains(&pooled),
+            (0.63 / 1.5..0.9).contains(&pooled),
             "DH coverage {pooled}: update the README"
         );
     } else if !(0.90..=0.995).contains(&pooled) {
         failures.push(format!("pooled coverage {pooled}"));
     }
-    // README: the predicted p95 at or above the true one in 58 of the 60 cells
-    // of a-d and f, the two below both in d.
-    if below_truth.len() > 2 {
+    // README: the predicted p95 at or above the true one in 59 of the 60 cells
+    // of a-d and f, the one below (in c) at 0.99x.
+    if below_truth.len() > 1 || below_truth.iter().any(|(_, r)| *r < 0.95) {
         failures.push(format!(
             "predicted p95 below the true one in {} cells: {below_truth:?}",
             below_truth.len()
