@@ -178,14 +178,13 @@ pub fn bound_check(
             });
         }
     }
-    let (jtj, jte) =
-        points
-            .iter()
-            .zip(errors)
-            .fold((Matrix6::zeros(), Vector6::zeros()), |(a, b), (p, e)| {
-                let h = point_jacobian(p);
-                (a + h.transpose() * h, b + h.transpose() * e)
-            });
+    let jacobians: Vec<Matrix3x6<f64>> = points.iter().map(point_jacobian).collect();
+    let (jtj, jte) = jacobians
+        .iter()
+        .zip(errors)
+        .fold((Matrix6::zeros(), Vector6::zeros()), |(a, b), (h, e)| {
+            (a + h.transpose() * h, b + h.transpose() * e)
+        });
     let degenerate = || {
         CalibError::DegeneratePoints(
             "the touch points lie on a line: they do not fix the result's error".into(),
@@ -193,10 +192,10 @@ pub fn bound_check(
     };
     let jtj_inv = jtj.try_inverse().ok_or_else(degenerate)?;
     let delta = jtj_inv * jte;
-    let residual: f64 = points
+    let residual: f64 = jacobians
         .iter()
         .zip(errors)
-        .map(|(p, e)| (e - point_jacobian(p) * delta).norm_squared())
+        .map(|(h, e)| (e - h * delta).norm_squared())
         .sum();
     let tip = tip_sigma_m.max(TIP_SIGMA_FLOOR_M);
     let lambda0 = 2.0 * tip * tip;
@@ -377,10 +376,11 @@ pub fn verify_touches(
     }
     let tip1: Vec<_> = touches.iter().map(|t| t.0).collect();
     let tip2: Vec<_> = touches.iter().map(|t| t.1).collect();
-    let errors_m: Vec<f64> = touches
+    let vectors: Vec<Vector3<f64>> = touches
         .iter()
-        .map(|(a, b)| (a - base1_from_base2 * b).norm())
+        .map(|(a, b)| a - base1_from_base2 * b)
         .collect();
+    let errors_m: Vec<f64> = vectors.iter().map(|v| v.norm()).collect();
     if errors_m.iter().any(|e| !e.is_finite()) {
         return Err(CalibError::NonFinite("touch points".into()));
     }
@@ -395,10 +395,6 @@ pub fn verify_touches(
         .collect();
     let n = touches.len();
     let fitted = fit_rigid(&tip1, &tip2)?;
-    let vectors: Vec<Vector3<f64>> = touches
-        .iter()
-        .map(|(a, b)| a - base1_from_base2 * b)
-        .collect();
     let bound_check = bound_check(
         base1_from_base2,
         covariance,

@@ -2481,7 +2481,8 @@ fn touch_bound_check(b: &b2b_calib::metrics::BoundCheck) -> b2b_protocol::TouchB
         scatter_chi2: b.scatter.chi2,
         scatter_dof: b.scatter.dof,
         scatter_p: b.scatter.p_value,
-        beyond_chance: b.beyond_chance(),
+        offset_beyond_chance: b.offset.beyond_chance(),
+        scatter_beyond_chance: b.scatter.beyond_chance(),
         offset_sigma_mm: b.offset_sigma_m * 1e3,
         scatter_sigma_mm: b.scatter_sigma_m * 1e3,
     }

@@ -380,8 +380,10 @@ pub struct TouchBoundCheck {
     pub scatter_chi2: f64,
     pub scatter_dof: usize,
     pub scatter_p: f64,
-    /// Either p below 0.005 (1% of right models are called wrong).
-    pub beyond_chance: bool,
+    /// Each part beyond chance: p below 0.005 (together, 1% of right models
+    /// are called wrong).
+    pub offset_beyond_chance: bool,
+    pub scatter_beyond_chance: bool,
     /// The error per axis common to each arm (mm) that would bring the
     /// offset to its expected size (0 when it fits): a rough size for
     /// `--robot-accuracy-mm`.
@@ -389,6 +391,13 @@ pub struct TouchBoundCheck {
     /// The error per axis, arm and touch (mm) beyond the tip noise (0 when
     /// the scatter fits).
     pub scatter_sigma_mm: f64,
+}
+
+impl TouchBoundCheck {
+    /// Either part beyond chance.
+    pub fn beyond_chance(&self) -> bool {
+        self.offset_beyond_chance || self.scatter_beyond_chance
+    }
 }
 
 /// ISO 9283 figures of one repeatedly touched location.

@@ -1240,8 +1240,8 @@ fn verify_html(inputs: &ReportInputs) -> String {
     // All touches at once against the result's error model (verify's
     // `bound_check`; absent in reports of older versions).
     let (check, check_note) = v.bound_check.as_ref().map_or_else(Default::default, |c| {
-        let row = |what: &str, chi2: f64, dof: usize, p: f64| {
-            let class = if p < 0.005 { "warn" } else { "ok" };
+        let row = |what: &str, chi2: f64, dof: usize, p: f64, beyond: bool| {
+            let class = if beyond { "warn" } else { "ok" };
             format!(
                 "<tr><td>{what}</td><td class=\"{class}\">&chi;&sup2; {chi2:.1} on {dof} dof, \
                  p = {p:.2e}</td><td>p &ge; 0.005</td></tr>"
@@ -1252,21 +1252,23 @@ fn verify_html(inputs: &ReportInputs) -> String {
             c.offset_chi2,
             c.offset_dof,
             c.offset_p,
+            c.offset_beyond_chance,
         ) + &row(
             "the touches' scatter against the tip noise",
             c.scatter_chi2,
             c.scatter_dof,
             c.scatter_p,
+            c.scatter_beyond_chance,
         );
         let mut note = String::new();
-        if c.offset_p < 0.005 {
+        if c.offset_beyond_chance {
             note.push_str(&format!(
                 " The result is off by more than its covariance allows: calibrate again with \
                  the arms' accuracy (these touches suggest about {:.2} mm).",
                 c.offset_sigma_mm
             ));
         }
-        if c.scatter_p < 0.005 {
+        if c.scatter_beyond_chance {
             note.push_str(&format!(
                 " The touches scatter by about {:.3} mm per axis per arm beyond the tips' \
                  noise: noisier tips, or the arms' own error at the touch poses.",

@@ -261,7 +261,8 @@ fn the_touch_check_is_shown_and_checked() {
     v["bound_check"] = serde_json::json!({
         "offset_chi2": 31.5, "offset_dof": 6, "offset_p": 2.0e-5,
         "scatter_chi2": 70.0, "scatter_dof": 69, "scatter_p": 0.44,
-        "beyond_chance": true, "offset_sigma_mm": 0.41, "scatter_sigma_mm": 0.0
+        "offset_beyond_chance": true, "scatter_beyond_chance": false,
+        "offset_sigma_mm": 0.41, "scatter_sigma_mm": 0.0
     });
     let verify = dir.path().join("VERIFY.json");
     std::fs::write(&verify, v.to_string()).unwrap();

@@ -257,7 +257,10 @@ fn calibrate_then_verify_writes_conforming_files() {
     let check = v.bound_check.expect("the touch check in the JSON");
     assert_eq!((check.offset_dof, check.scatter_dof), (6, 69), "{check:?}");
     assert!(
-        (0.005..0.2).contains(&check.offset_p) && check.scatter_p < 0.005 && check.beyond_chance,
+        (0.005..0.2).contains(&check.offset_p)
+            && !check.offset_beyond_chance
+            && check.scatter_p < 0.005
+            && check.scatter_beyond_chance,
         "{check:?}"
     );
     assert!(

@@ -573,6 +573,11 @@ fn noisy_pairs(
         .collect()
 }
 
+/// The 95th percentile of sorted values (the nearest rank).
+fn p95(sorted: &[f64]) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * 0.95).round() as usize]
+}
+
 /// 27 touch locations: a 0.3 m cube centred on the board (in base1).
 fn touch_points(centre_in_base1: &Point3<f64>) -> Vec<Point3<f64>> {
     let mut pts = Vec::with_capacity(27);
@@ -764,8 +769,7 @@ struct Recalibration {
 
 impl Recalibration {
     /// Calibrates again with `accuracy` and tallies the result against the
-    /// truth at `points` and against `touches` (the pairs at `touch_at`);
-    /// returns the new estimate and its predicted p95 at `touch_at`.
+    /// truth at `points` and against `touches` (the pairs at `touch_at`).
     fn add(
         &mut self,
         inputs: &[RobotCaptures<'_>],
@@ -804,7 +808,7 @@ impl Recalibration {
         Some(Recalibrated {
             sigma_t_m: self.sigma_t_m / seeds,
             sigma_r_rad: self.sigma_r_rad / seeds,
-            true_p95: self.errors[((self.errors.len() - 1) as f64 * 0.95).round() as usize],
+            true_p95: p95(&self.errors),
             predicted_p95: self.predicted_p95 / seeds,
             coverage: self.covered as f64 / self.errors.len() as f64,
             touch_coverage: self.touch_covered as f64 / touches,
@@ -866,7 +870,6 @@ fn run_cell(
     let (mut caught, mut typos, mut clean_rejected) = (0, 0, 0);
     let (mut offset_flags, mut scatter_flags) = (0, 0);
     let (mut accepted_covered, mut accepted_points) = (0, 0);
-    // Per suggestion: its sum over seeds, the errors, the predicted p95s, the covered.
     let mut per_seed = Vec::new();
     for s in 0..seeds {
         let seed = s;
@@ -990,10 +993,9 @@ fn run_cell(
         per_seed.push((default_error, limit_error, closed_errors));
     }
     all_errors.sort_by(f64::total_cmp);
-    let k = ((all_errors.len() - 1) as f64 * 0.95).round() as usize;
     op_errors.sort_by(f64::total_cmp);
     let operational = (!op_errors.is_empty()).then(|| Operational {
-        p95: op_errors[((op_errors.len() - 1) as f64 * 0.95).round() as usize],
+        p95: p95(&op_errors),
         mean: op_errors.iter().sum::<f64>() / op_errors.len() as f64,
         coverage: op_covered as f64 / op_errors.len() as f64,
         reached: op_errors.len() as f64 / op_total as f64,
@@ -1011,7 +1013,7 @@ fn run_cell(
         limit_mean: limit_sum / sf,
         closed_mean: closed_sum.map(|v| v / sf),
         closed_failed,
-        true_p95: all_errors[k],
+        true_p95: p95(&all_errors),
         predicted_p95: predicted / sf,
         coverage: covered as f64 / total_points as f64,
         typos_caught: caught,
