@@ -32,7 +32,7 @@ pub enum CycleScheduling {
 /// Puts the calling thread under SCHED_FIFO at `priority` (1..=99), or leaves it alone
 /// with `None`. A refusal is logged, not returned: the cycle then runs without the
 /// guarantee, which the missed-reply counters show.
-pub(crate) fn promote_current_thread(what: &str, priority: Option<u8>) -> CycleScheduling {
+pub fn promote_current_thread(what: &str, priority: Option<u8>) -> CycleScheduling {
     let Some(priority) = priority else {
         return CycleScheduling::Normal;
     };

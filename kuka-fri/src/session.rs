@@ -17,6 +17,12 @@
 //!   MONITORING_* echo `commandedJointPosition` (FRI 2.x lacks it: the interpolator position
 //!   is used), COMMANDING_WAIT echoes the interpolator position, and only in
 //!   COMMANDING_ACTIVE does the client's own command go out.
+//! * A COMMANDING_ACTIVE command is an absolute joint target (the controller takes the
+//!   overlay as its difference to the application's interpolated position). The first one
+//!   is the interpolated position of the message it answers, so the overlay starts at
+//!   zero; from then on the client holds the arm where it last commanded it, whether or
+//!   not the application's interpolated position moves. The robot application is expected
+//!   to hold a pose under the overlay (KUKA's position hold with a joint overlay).
 //! * Every COMMANDING_ACTIVE command passes [`SafetyGuard::check`] against the previously
 //!   sent command, over the controller time between the two messages they answer. A command
 //!   that fails is replaced by holding the previous one (zero velocity) and reported; if even
@@ -228,6 +234,8 @@ pub enum Event {
 pub struct SessionStats {
     /// Monitoring messages accepted.
     pub received: u64,
+    /// Of [`received`](Self::received), those reporting IDLE (never answered).
+    pub received_idle: u64,
     /// Datagrams rejected by the codec.
     pub malformed: u64,
     /// Reordered or duplicated datagrams ignored.
@@ -459,6 +467,7 @@ impl ClientSession {
 
         let mut reply_due = false;
         if snap.state == SessionState::Idle {
+            self.stats.received_idle += 1;
             self.multiplier_count = 0;
             self.pending = None;
         } else {

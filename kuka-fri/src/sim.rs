@@ -4,25 +4,51 @@
 //! The simulator is the client's test partner and the project's stand-in for hardware. It
 //! encodes and decodes with the same [`crate::codec`] and is sans-I/O like the client: it
 //! is fed command datagrams and instants and asked for monitoring datagrams, so a test can
-//! run thousands of cycles on a virtual clock in milliseconds, and the `fri-sim-controller`
-//! binary puts the very same object behind a UDP socket.
+//! run thousands of cycles on a virtual clock in milliseconds, and [`crate::server`] and the
+//! `fri-sim-controller` binary put the very same object behind a UDP socket.
 //!
-//! # What it models
-//! * A monitoring message every `send_period_ms`, with measured positions = true positions
-//!   plus Gaussian encoder noise, the interpolator/commanded position, a Unix time stamp of the
-//!   simulated controller clock, and the session state and connection quality.
-//! * The arm follows its target within velocity and acceleration limits (braking so it never
-//!   overshoots). The target is the robot application's ([`SimulatedController::move_app_to`])
-//!   except in COMMANDING_ACTIVE, where it is the client's last accepted command.
-//! * Session states: IDLE ⇄ MONITORING_WAIT → MONITORING_READY (once a full window of replies
-//!   arrived with GOOD quality) → COMMANDING_WAIT (on [`SimulatedController::start_commanding`])
-//!   → COMMANDING_ACTIVE (after the client echoed the interpolator position for a few cycles).
-//!   Quality below GOOD drops back to MONITORING_WAIT and aborts commanding, as the real
-//!   controller aborts an FRI overlay.
-//! * Connection quality is the ratio of replies received to replies expected over a sliding
-//!   window (a simplification: the real controller also weighs latency and jitter).
-//! * Commands are checked like the real controller would fault on them: outside the joint
-//!   limits or faster than the velocity limit → counted in [`SimStats::violations`] and ignored.
+//! # What it models: a controller as KUKA documents it
+//! Written from KUKA's documentation of FRI (shared/facts.md §1), not from our client, so
+//! that the two cannot share one misreading:
+//! * **Three positions, kept apart.** The robot application's interpolated position
+//!   (`ipoData.jointPosition`): a held pose, or the application's own motion
+//!   ([`SimulatedController::move_app_to`]), never the client's overlay. The commanded
+//!   position (`monitorData.commandedJointPosition`): the interpolated position, except in
+//!   COMMANDING_ACTIVE, where it is the client's command, **an absolute joint target**;
+//!   the overlay is the difference ([`SimulatedController::overlay`]). The measured
+//!   position: the arm following the commanded one within its velocity and acceleration
+//!   capability, plus Gaussian encoder noise. A client that commands
+//!   `ipo + offset` (KUKA's `LBRJointSineOverlay`) therefore moves the arm by `offset`
+//!   around the application's position, and never integrates it.
+//! * **A period of its own.** A message is due every `send_period_ms` on a fixed grid
+//!   (`next += period`); a cycle that runs a period or more late skips the deadlines it
+//!   missed and stays on the grid ([`SimStats::skipped_cycles`]); a send more than half a
+//!   period after its deadline is counted in [`SimStats::late_sends`].
+//! * **Connection quality from late or missing replies.** The client must answer every
+//!   `receive_multiplier`-th message. A reply counts for the connection when it arrives
+//!   before the controller has sent `receive_multiplier` further messages; a later one is
+//!   counted in [`SimStats::late_replies`] and, like a lost one, as missing. The quality is
+//!   the share of replies on time over the last `quality_window` cycles: EXCELLENT at or
+//!   above `excellent_ratio`, GOOD at or above `good_ratio`, FAIR at or above half of it,
+//!   else POOR. KUKA documents the four levels (FAIR "insufficient for command mode", GOOD
+//!   "sufficient") but not its thresholds; these are ours.
+//! * **Session states** as KUKA names them: MONITORING_WAIT (quality insufficient) →
+//!   MONITORING_READY (a full window at GOOD or better) → COMMANDING_WAIT (the application
+//!   starts a motion with an FRI overlay, [`SimulatedController::start_commanding`]; the
+//!   client must answer with the interpolated position of the message it answers, within
+//!   one period's velocity limit, for `commanding_wait_cycles` cycles) → COMMANDING_ACTIVE.
+//!   Out of COMMANDING_ACTIVE: the application ends the overlay
+//!   ([`SimulatedController::stop_commanding`], → MONITORING_READY); the quality drops
+//!   below GOOD (missing replies, → MONITORING_WAIT); or a command is refused (→
+//!   MONITORING_READY). Either abort is counted in [`SimStats::aborted`]; the arm stays
+//!   where the overlay left it, which becomes the application's held pose.
+//! * **Commands are checked** as the controller's supervision would: the first command of
+//!   COMMANDING_ACTIVE against the interpolated position of the message it answers, each
+//!   later one against the command before it, over the controller time between the
+//!   messages they answer; outside the joint limits or a jump beyond the velocity limit →
+//!   [`SimStats::violations`], the command is not applied and the overlay is aborted.
+//! * A lost command is bridged by extrapolating the last command's motion for up to three
+//!   cycles, then held; the client's replies are matched to the message they reflect.
 //!
 //! [`Link`] models one direction of the network: seeded loss, delay with jitter, and
 //! reordering (a fraction of datagrams delayed past later ones).
@@ -52,7 +78,8 @@ pub struct SimConfig {
     pub send_period_ms: u32,
     /// The client answers every `receive_multiplier`-th message.
     pub receive_multiplier: u32,
-    /// Position and velocity limits the arm moves within and checks commands against.
+    /// Position and velocity limits the arm moves within and checks commands against; the
+    /// robot application's own motion uses their velocities and accelerations.
     pub limits: JointLimits,
     /// The arm's own acceleration capability (rad/s²), above the planning limits in
     /// [`JointLimits::acceleration`] as on a real arm.
@@ -63,11 +90,11 @@ pub struct SimConfig {
     pub encoder_noise: f64,
     /// Seed of the noise generator.
     pub seed: u64,
-    /// Cycles over which the reply ratio is measured.
+    /// Cycles over which the share of replies on time is measured.
     pub quality_window: u32,
-    /// Reply ratio at or above which quality is GOOD.
+    /// Share of replies on time at or above which quality is GOOD.
     pub good_ratio: f64,
-    /// Reply ratio at or above which quality is EXCELLENT.
+    /// Share of replies on time at or above which quality is EXCELLENT.
     pub excellent_ratio: f64,
     /// Cycles the client must echo the interpolator position in COMMANDING_WAIT.
     pub commanding_wait_cycles: u32,
@@ -102,21 +129,25 @@ impl Default for SimConfig {
 pub struct SimStats {
     /// Monitoring messages produced.
     pub sent: u64,
+    /// Of [`sent`](Self::sent), those sent in IDLE (which the client must not answer).
+    pub sent_idle: u64,
     /// Valid command messages received.
     pub commands: u64,
     /// Datagrams rejected by the codec.
     pub malformed: u64,
     /// Reordered or duplicated commands ignored.
     pub stale: u64,
-    /// COMMANDING_ACTIVE commands outside joint or velocity limits (a real controller faults).
+    /// COMMANDING_ACTIVE commands outside the joint limits, or jumping from the previous
+    /// command (or, for the first, from the interpolated position) faster than the velocity
+    /// limit allows. Each one is refused and aborts the overlay.
     pub violations: u64,
-    /// Commanding phases aborted because the quality dropped.
+    /// Overlays aborted: the quality dropped below GOOD, or a command was refused.
     pub aborted: u64,
-    /// Replies whose reflected sequence counter was never sent.
+    /// Replies whose reflected sequence counter was never sent (ignored).
     pub bad_reflections: u64,
-    /// Cycles (outside IDLE) that closed with no reply for the last `receive_multiplier`
-    /// cycles: a reply the controller did not get in time, late or lost. These are the
-    /// zeros of the connection-quality window; a real controller counts them as missing.
+    /// Cycles (outside IDLE) that closed with no reply on time for the last
+    /// `receive_multiplier` cycles: a reply the controller did not get in time, late or
+    /// lost. These are the zeros of the connection-quality window.
     pub missed_replies: u64,
     /// Of [`missed_replies`](Self::missed_replies), those that followed a late send of the
     /// controller's own, which left the client less than half a period to answer.
@@ -124,13 +155,25 @@ pub struct SimStats {
     /// Messages sent more than half a period after they were due (the controller's own
     /// cycle ran late).
     pub late_sends: u64,
-    /// Replies that arrived after `receive_multiplier` further messages had been sent.
+    /// Deadlines skipped because a cycle ran a period or more late (no message is sent for
+    /// them; the grid of deadlines is kept).
+    pub skipped_cycles: u64,
+    /// Replies that arrived after `receive_multiplier` further messages had been sent:
+    /// too late to count for the connection.
     pub late_replies: u64,
     /// Longest delay of a send past its due time.
     pub max_send_lateness: Duration,
     /// Longest time from sending a message to taking in the reply that reflects it (a
     /// cyclic driver takes replies in at its next cycle, so this is then about a period).
     pub max_reply_latency: Duration,
+}
+
+/// A sent message remembered to match the replies that reflect it.
+#[derive(Clone, Copy, Debug)]
+struct SentMessage {
+    seq: u32,
+    at: Instant,
+    ipo: Joints,
 }
 
 /// The robot side of FRI (sans-I/O).
@@ -144,10 +187,20 @@ pub struct SimulatedController {
     last_client_seq: Option<u32>,
     state: SessionState,
     quality: ConnectionQuality,
+    /// The arm: true joint positions and velocities.
     q: Joints,
     v: Joints,
+    /// The robot application's interpolator: position, velocity, and where it is going.
+    ipo: Joints,
+    ipo_v: Joints,
     app_target: Joints,
+    /// The commanded position of the current cycle (the interpolated position, or the
+    /// client's command in COMMANDING_ACTIVE).
+    commanded: Joints,
+    /// The client's command in force and the controller message it answered.
     command: Option<(Joints, u32)>,
+    /// That command minus the interpolated position of the message it answered.
+    overlay: Joints,
     /// Per-cycle velocity of the command in force, for bridging lost commands.
     command_rate: Joints,
     window: VecDeque<u32>,
@@ -155,20 +208,29 @@ pub struct SimulatedController {
     echo_ok_cycles: u32,
     echo_ok_this_cycle: bool,
     commanding_requested: bool,
-    /// Cycles since the last one in which a reply arrived.
+    /// Cycles since the last one in which a reply arrived on time.
     silent_cycles: u32,
     /// Whether the newest message was sent late.
     last_send_late: bool,
-    /// Send instants of the newest messages, indexed by sequence counter.
-    sent_at: [Option<Instant>; SENT_AT_SLOTS],
+    /// The newest messages, indexed by sequence counter.
+    sent: [Option<SentMessage>; SENT_SLOTS],
+    /// Session states reported, consecutive repeats collapsed (the first [`MAX_STATES`]).
+    states_seen: Vec<SessionState>,
     stats: SimStats,
 }
 
-/// Messages whose send instant is kept to measure reply latency.
-const SENT_AT_SLOTS: usize = 16;
+/// Sent messages remembered to match replies (reply latency, the interpolated position a
+/// command answers).
+const SENT_SLOTS: usize = 64;
 
 /// Largest backward step of the client's sequence counter treated as reordering.
 const REORDER_WINDOW: u32 = 64;
+
+/// State changes remembered in [`SimulatedController::states_seen`].
+const MAX_STATES: usize = 256;
+
+/// Cycles over which a lost command is bridged by extrapolating the last one.
+const BRIDGE_CYCLES: u32 = 3;
 
 impl SimulatedController {
     /// A controller in MONITORING_WAIT (an FRI session has just been opened), whose first
@@ -215,8 +277,12 @@ impl SimulatedController {
             quality: ConnectionQuality::Poor,
             q: cfg.initial_q,
             v: [0.0; NUM_JOINTS],
+            ipo: cfg.initial_q,
+            ipo_v: [0.0; NUM_JOINTS],
             app_target: cfg.initial_q,
+            commanded: cfg.initial_q,
             command: None,
+            overlay: [0.0; NUM_JOINTS],
             command_rate: [0.0; NUM_JOINTS],
             window: VecDeque::new(),
             replies_this_cycle: 0,
@@ -225,7 +291,8 @@ impl SimulatedController {
             commanding_requested: false,
             silent_cycles: 0,
             last_send_late: false,
-            sent_at: [None; SENT_AT_SLOTS],
+            sent: [None; SENT_SLOTS],
+            states_seen: Vec::new(),
             stats: SimStats::default(),
             cfg,
         })
@@ -246,6 +313,28 @@ impl SimulatedController {
         self.q
     }
 
+    /// The robot application's interpolated position (rad), as sent in `ipoData`.
+    pub fn ipo(&self) -> Joints {
+        self.ipo
+    }
+
+    /// The commanded position of the last cycle (rad), as sent in `monitorData`.
+    pub fn commanded(&self) -> Joints {
+        self.commanded
+    }
+
+    /// The client's overlay in force (rad): its last command minus the interpolated
+    /// position of the message that command answered; zero outside COMMANDING_ACTIVE.
+    pub fn overlay(&self) -> Joints {
+        self.overlay
+    }
+
+    /// The session states the messages reported so far, in order, consecutive repeats
+    /// collapsed (the first 256).
+    pub fn states_seen(&self) -> &[SessionState] {
+        &self.states_seen
+    }
+
     /// Counters.
     pub fn stats(&self) -> SimStats {
         self.stats
@@ -261,8 +350,10 @@ impl SimulatedController {
         Duration::from_millis(u64::from(self.cfg.send_period_ms))
     }
 
-    /// The robot application moves the arm (outside COMMANDING_ACTIVE), e.g. a Sunrise motion
-    /// while the client only monitors. Clamped to the joint limits.
+    /// The robot application moves to `q` (clamped to the joint limits) along its own
+    /// motion: the interpolated position moves there within the velocity and acceleration
+    /// limits. Outside COMMANDING_ACTIVE the arm follows it; in COMMANDING_ACTIVE the
+    /// client's command decides where the arm is, and the overlay changes with it.
     pub fn move_app_to(&mut self, q: Joints) {
         let l = &self.cfg.limits;
         for (j, (dst, &v)) in self.app_target.iter_mut().zip(&q).enumerate() {
@@ -272,7 +363,8 @@ impl SimulatedController {
         }
     }
 
-    /// The robot application starts a motion with an FRI joint overlay.
+    /// The robot application starts a motion with an FRI joint overlay (from
+    /// MONITORING_READY, at once or as soon as it is reached).
     pub fn start_commanding(&mut self) {
         self.commanding_requested = true;
     }
@@ -304,16 +396,43 @@ impl SimulatedController {
         }
     }
 
+    /// The overlay ends: the arm stays where it was commanded, which becomes the
+    /// application's held pose.
     fn leave_commanding(&mut self, to: SessionState) {
         self.state = to;
         self.command = None;
+        self.overlay = [0.0; NUM_JOINTS];
+        self.command_rate = [0.0; NUM_JOINTS];
         self.echo_ok_cycles = 0;
-        self.app_target = self.q;
+        self.ipo = self.commanded;
+        self.ipo_v = [0.0; NUM_JOINTS];
+        self.app_target = self.commanded;
+    }
+
+    /// The overlay is aborted (by a refused command or a quality drop).
+    fn abort_commanding(&mut self, to: SessionState) {
+        self.stats.aborted += 1;
+        self.commanding_requested = false;
+        self.leave_commanding(to);
     }
 
     /// When the next monitoring message is due.
     pub fn poll_timeout(&self) -> Instant {
         self.next_send
+    }
+
+    /// The message with sequence counter `seq`, if it is still remembered.
+    fn sent_message(&self, seq: u32) -> Option<&SentMessage> {
+        self.sent[seq as usize % SENT_SLOTS]
+            .as_ref()
+            .filter(|m| m.seq == seq)
+    }
+
+    /// Whether `q` is within one period's velocity limit of `reference` (`cycles` periods).
+    fn within_velocity(&self, q: &Joints, reference: &Joints, cycles: u32) -> bool {
+        let dt = f64::from(cycles) * f64::from(self.cfg.send_period_ms) * 1e-3;
+        (0..NUM_JOINTS)
+            .all(|j| (q[j] - reference[j]).abs() <= self.cfg.limits.velocity[j] * dt * (1.0 + 1e-6))
     }
 
     /// Handles a command datagram from the client, received at `now`.
@@ -333,82 +452,94 @@ impl SimulatedController {
             }
         }
         self.last_client_seq = Some(header.sequence_counter);
-        if header.reflected_sequence_counter.wrapping_sub(self.seq) < u32::MAX / 2 {
-            // Reflects a counter we have not sent yet.
+        let reflected = header.reflected_sequence_counter;
+        if reflected.wrapping_sub(self.seq) < u32::MAX / 2 {
+            // Reflects a counter not sent yet.
             self.stats.bad_reflections += 1;
+            return Ok(());
         }
         self.stats.commands += 1;
-        self.audit_reply(now, header.reflected_sequence_counter);
+        let on_time = self.audit_reply(now, reflected);
         if self.state == SessionState::Idle {
             return Ok(());
         }
-        self.replies_this_cycle += 1;
+        if on_time {
+            self.replies_this_cycle += 1;
+        }
         let q = match msg.command_data.and_then(|c| c.joint_position) {
             Some(jv) => codec::joints(codec::COMMAND, "commandData.jointPosition", &jv)?,
             None => return Ok(()),
         };
         match self.state {
             SessionState::CommandingWait => {
-                let close = q.iter().zip(&self.q).all(|(a, b)| (a - b).abs() < 1e-3);
-                self.echo_ok_this_cycle |= close;
+                let ipo = self.sent_message(reflected).map_or(self.ipo, |m| m.ipo);
+                self.echo_ok_this_cycle |= on_time && self.within_velocity(&q, &ipo, 1);
             }
-            SessionState::CommandingActive => {
-                let reflected = header.reflected_sequence_counter;
-                let ok_pos = self.cfg.limits.check_position(&q, 0.0).is_ok();
-                let ok_vel = match self.command {
-                    Some((prev, prev_seq)) => {
-                        let cycles = reflected.wrapping_sub(prev_seq);
-                        if cycles == 0 || cycles > u32::MAX / 2 {
-                            // Older than the command in force: out of order, ignore.
-                            self.stats.stale += 1;
-                            return Ok(());
-                        }
-                        let dt = f64::from(cycles) * f64::from(self.cfg.send_period_ms) * 1e-3;
-                        (0..NUM_JOINTS).all(|j| {
-                            (q[j] - prev[j]).abs()
-                                <= self.cfg.limits.velocity[j] * dt * (1.0 + 1e-6)
-                        })
-                    }
-                    None => (0..NUM_JOINTS).all(|j| (q[j] - self.q[j]).abs() < 1e-2),
-                };
-                if ok_pos && ok_vel {
-                    self.command_rate = match self.command {
-                        Some((prev, prev_seq)) => {
-                            let cycles = f64::from(reflected.wrapping_sub(prev_seq));
-                            std::array::from_fn(|j| (q[j] - prev[j]) / cycles)
-                        }
-                        None => [0.0; NUM_JOINTS],
-                    };
-                    self.command = Some((q, reflected));
-                } else {
-                    self.stats.violations += 1;
-                }
-            }
+            SessionState::CommandingActive => self.accept_command(q, reflected),
             _ => {}
         }
         Ok(())
     }
 
-    /// Reply latency and lateness of a reply reflecting message `reflected`.
-    fn audit_reply(&mut self, now: Instant, reflected: u32) {
-        // `self.seq` is the next message's counter: messages up to `self.seq - 1` are out.
-        let behind = self.seq.wrapping_sub(reflected);
-        if behind == 0 || behind > u32::MAX / 2 {
-            return; // Reflects a message not sent yet (counted as a bad reflection).
-        }
-        if behind > self.cfg.receive_multiplier {
-            self.stats.late_replies += 1;
-        }
-        if (behind as usize) <= SENT_AT_SLOTS
-            && let Some(sent) = self.sent_at[reflected as usize % SENT_AT_SLOTS]
-        {
-            let latency = now.saturating_duration_since(sent);
-            self.stats.max_reply_latency = self.stats.max_reply_latency.max(latency);
+    /// Checks a COMMANDING_ACTIVE command answering message `reflected`; applies it, or
+    /// refuses it and aborts the overlay.
+    fn accept_command(&mut self, q: Joints, reflected: u32) {
+        let answered_ipo = self.sent_message(reflected).map_or(self.ipo, |m| m.ipo);
+        let (reference, cycles) = match self.command {
+            Some((prev, prev_seq)) => {
+                let cycles = reflected.wrapping_sub(prev_seq);
+                if cycles == 0 || cycles > u32::MAX / 2 {
+                    // Not newer than the command in force: out of order, ignore.
+                    self.stats.stale += 1;
+                    return;
+                }
+                (prev, cycles)
+            }
+            // The first command continues from the interpolated position it answers.
+            None => (answered_ipo, 1),
+        };
+        let ok_pos = self.cfg.limits.check_position(&q, 0.0).is_ok();
+        if ok_pos && self.within_velocity(&q, &reference, cycles) {
+            self.command_rate = match self.command {
+                Some((prev, _)) => std::array::from_fn(|j| (q[j] - prev[j]) / f64::from(cycles)),
+                // The first command starts at the interpolated position: until the next
+                // one arrives it moves as the interpolator does.
+                None => {
+                    let dt = self.send_period().as_secs_f64();
+                    std::array::from_fn(|j| self.ipo_v[j] * dt)
+                }
+            };
+            self.command = Some((q, reflected));
+            self.overlay = std::array::from_fn(|j| q[j] - answered_ipo[j]);
+        } else {
+            self.stats.violations += 1;
+            tracing::warn!(
+                ?q,
+                ?reference,
+                cycles,
+                "simulated controller refuses an FRI command and aborts the overlay"
+            );
+            self.abort_commanding(SessionState::MonitoringReady);
         }
     }
 
-    /// Counts a missed reply when `receive_multiplier` cycles closed without one, and the
-    /// lateness of the send at `now` of a message due at `due`.
+    /// Reply latency and lateness of a reply reflecting message `reflected`; whether it
+    /// is on time (before `receive_multiplier` further messages were sent).
+    fn audit_reply(&mut self, now: Instant, reflected: u32) -> bool {
+        // `self.seq` is the next message's counter: messages up to `self.seq - 1` are out.
+        let behind = self.seq.wrapping_sub(reflected);
+        if behind > self.cfg.receive_multiplier {
+            self.stats.late_replies += 1;
+        }
+        if let Some(sent) = self.sent_message(reflected) {
+            let latency = now.saturating_duration_since(sent.at);
+            self.stats.max_reply_latency = self.stats.max_reply_latency.max(latency);
+        }
+        behind <= self.cfg.receive_multiplier
+    }
+
+    /// Counts a missed reply when `receive_multiplier` cycles closed without one on time,
+    /// and the lateness of the send at `now` of a message due at `due`.
     fn audit_cycle(&mut self, now: Instant, due: Instant) {
         // Before the first message nothing was owed.
         if self.state != SessionState::Idle && self.stats.sent > 0 {
@@ -431,7 +562,6 @@ impl SimulatedController {
             self.stats.late_sends += 1;
         }
         self.stats.max_send_lateness = self.stats.max_send_lateness.max(lateness);
-        self.sent_at[self.seq as usize % SENT_AT_SLOTS] = Some(now);
     }
 
     fn gaussian(&mut self) -> f64 {
@@ -441,46 +571,52 @@ impl SimulatedController {
         (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
     }
 
-    fn step_arm(&mut self, dt: f64) {
+    /// One cycle of the robot: the application's interpolator, the commanded position,
+    /// the arm following it.
+    fn step(&mut self, dt: f64) {
         let l = self.cfg.limits;
-        let (target, target_rate) = match (self.state, self.command) {
+        let ipo_before = self.ipo;
+        for j in 0..NUM_JOINTS {
+            track(
+                (&mut self.ipo[j], &mut self.ipo_v[j]),
+                (self.app_target[j], 0.0),
+                (l.velocity[j], l.acceleration[j]),
+                (l.position_min[j], l.position_max[j]),
+                dt,
+            );
+        }
+        let (commanded, rate) = match (self.state, self.command) {
             (SessionState::CommandingActive, Some((q, reflected))) => {
                 // The command answering message r is applied in cycle r + 1. When newer ones
-                // are missing (lost or late), extrapolate the command's motion for up to
-                // three cycles, as an interpolator bridging gaps would, then hold.
+                // are missing (lost or late), extrapolate the command's motion for a few
+                // cycles, as an interpolator bridging gaps would, then hold.
                 let missing = self.seq.wrapping_sub(reflected).saturating_sub(1);
-                let rate = if missing < 3 {
+                let n = missing.min(BRIDGE_CYCLES);
+                let rate = if missing < BRIDGE_CYCLES {
                     self.command_rate
                 } else {
                     [0.0; NUM_JOINTS]
                 };
-                let n = f64::from(missing.min(3));
-                let mut t = q;
-                for j in 0..NUM_JOINTS {
-                    t[j] = (q[j] + self.command_rate[j] * n)
-                        .clamp(l.position_min[j], l.position_max[j]);
-                }
+                let t: Joints = std::array::from_fn(|j| {
+                    (q[j] + self.command_rate[j] * f64::from(n))
+                        .clamp(l.position_min[j], l.position_max[j])
+                });
                 (t, rate)
             }
-            (SessionState::CommandingActive | SessionState::CommandingWait, None) => {
-                (self.q, [0.0; NUM_JOINTS])
-            }
-            _ => (self.app_target, [0.0; NUM_JOINTS]),
+            _ => (
+                self.ipo,
+                std::array::from_fn(|j| self.ipo[j] - ipo_before[j]),
+            ),
         };
+        self.commanded = commanded;
         for j in 0..NUM_JOINTS {
-            let e = target[j] - self.q[j];
-            let (vmax, amax) = (l.velocity[j], self.cfg.arm_acceleration);
-            // Close the error no faster than in one cycle, and slowly enough to brake in time
-            // (discrete-time stopping distance), on top of the target's own velocity.
-            let adt = amax * dt;
-            let closing =
-                (e.abs() / dt).min(adt * ((0.25 + 2.0 * e.abs() / (adt * dt)).sqrt() - 0.5));
-            let desired = target_rate[j] / dt + closing.copysign(e);
-            let v = desired
-                .clamp(self.v[j] - adt, self.v[j] + adt)
-                .clamp(-vmax, vmax);
-            self.v[j] = v;
-            self.q[j] = (self.q[j] + v * dt).clamp(l.position_min[j], l.position_max[j]);
+            track(
+                (&mut self.q[j], &mut self.v[j]),
+                (commanded[j], rate[j]),
+                (l.velocity[j], self.cfg.arm_acceleration),
+                (l.position_min[j], l.position_max[j]),
+                dt,
+            );
         }
     }
 
@@ -526,9 +662,7 @@ impl SimulatedController {
             }
             SessionState::CommandingWait | SessionState::CommandingActive => {
                 if !good {
-                    self.stats.aborted += 1;
-                    self.commanding_requested = false;
-                    self.leave_commanding(SessionState::MonitoringWait);
+                    self.abort_commanding(SessionState::MonitoringWait);
                 } else if self.state == SessionState::CommandingWait {
                     if echo_ok {
                         self.echo_ok_cycles += 1;
@@ -543,9 +677,11 @@ impl SimulatedController {
     }
 
     /// If a monitoring message is due at `now`, advances the simulation one cycle, writes
-    /// the message into `buf` and returns its length. A cycle that runs a period or more
-    /// late skips the cycles it missed and starts a new period at `now`: like a real
-    /// controller, it never sends two messages less than a period apart, which would leave
+    /// the message into `buf` and returns its length.
+    ///
+    /// Deadlines lie on a fixed grid (`next += period`). A cycle that runs a period or more
+    /// late skips the deadlines it missed and stays on the grid: like a real controller,
+    /// it never sends two messages less than a period apart to catch up, which would leave
     /// the client no time to answer the first.
     pub fn poll_transmit(&mut self, now: Instant, buf: &mut [u8]) -> Option<usize> {
         if now < self.next_send {
@@ -555,17 +691,30 @@ impl SimulatedController {
         let due = self.next_send;
         self.next_send += period;
         if now >= self.next_send {
-            self.next_send = now + period;
+            let behind = (now - self.next_send).as_nanos() / period.as_nanos();
+            let skipped = u32::try_from(behind + 1).unwrap_or(u32::MAX);
+            self.next_send += period * skipped;
+            self.stats.skipped_cycles += u64::from(skipped);
         }
         self.audit_cycle(now, due);
-        let dt = period.as_secs_f64();
-        self.step_arm(dt);
+        self.step(period.as_secs_f64());
         self.update_quality_and_state();
         let msg = self.monitoring_message(now);
+        self.sent[self.seq as usize % SENT_SLOTS] = Some(SentMessage {
+            seq: self.seq,
+            at: now,
+            ipo: self.ipo,
+        });
+        if self.states_seen.last() != Some(&self.state) && self.states_seen.len() < MAX_STATES {
+            self.states_seen.push(self.state);
+        }
         self.seq = self.seq.wrapping_add(1);
         match codec::encode_monitoring(&msg, buf) {
             Ok(n) => {
                 self.stats.sent += 1;
+                if self.state == SessionState::Idle {
+                    self.stats.sent_idle += 1;
+                }
                 Some(n)
             }
             Err(err) => {
@@ -607,7 +756,7 @@ impl SimulatedController {
             monitor_data: Some(MessageMonitorData {
                 measured_joint_position: Some(JointValues::from_array(&measured)),
                 measured_torque: Some(JointValues::from_array(&[0.0; NUM_JOINTS])),
-                commanded_joint_position: Some(JointValues::from_array(&self.q)),
+                commanded_joint_position: Some(JointValues::from_array(&self.commanded)),
                 commanded_torque: Some(JointValues::from_array(&[0.0; NUM_JOINTS])),
                 external_torque: Some(JointValues::from_array(&[0.0; NUM_JOINTS])),
                 read_io_request: Vec::new(),
@@ -623,7 +772,7 @@ impl SimulatedController {
                 receive_multiplier: Some(self.cfg.receive_multiplier),
             }),
             ipo_data: Some(MessageIpoData {
-                joint_position: Some(JointValues::from_array(&self.q)),
+                joint_position: Some(JointValues::from_array(&self.ipo)),
                 client_command_mode: Some(ClientCommandMode::Position as i32),
                 overlay_type: Some(if commanding {
                     OverlayType::Joint
@@ -640,6 +789,27 @@ impl SimulatedController {
             end_of_message_data: None,
         }
     }
+}
+
+/// One joint following a target that moves by `target.1` per cycle, within a velocity
+/// and an acceleration limit: the target's own velocity as feed-forward, plus closing the
+/// error no faster than in one cycle and slowly enough to brake in time (discrete-time
+/// stopping distance), so it never overshoots a target that stops.
+fn track(
+    (pos, vel): (&mut f64, &mut f64),
+    (target, rate): (f64, f64),
+    (vmax, amax): (f64, f64),
+    (lo, hi): (f64, f64),
+    dt: f64,
+) {
+    let feed_forward = rate / dt;
+    let e = target - *pos - rate;
+    let adt = amax * dt;
+    let closing = (e.abs() / dt).min(adt * ((0.25 + 2.0 * e.abs() / (adt * dt)).sqrt() - 0.5));
+    let desired = feed_forward + closing.copysign(e);
+    let v = desired.clamp(*vel - adt, *vel + adt).clamp(-vmax, vmax);
+    *vel = v;
+    *pos = (*pos + v * dt).clamp(lo, hi);
 }
 
 /// Impairments of one direction of a [`Link`].

@@ -18,8 +18,10 @@
 //!   sends still passes the guard.
 //!
 //! As in KUKA's SDK, the client binds a local port (default 30200) and replies to whichever
-//! address the controller's datagrams come from, unless a controller address is configured,
-//! in which case datagrams from other addresses are ignored.
+//! address the controller's datagrams come from, unless a controller address is configured:
+//! then the socket is `connect()`ed to it, as the SDK does, and datagrams from any other
+//! address (another port of the controller's host included) never reach the client. A
+//! controller sends from its FRI port, so the address to configure is `controller:30200`.
 
 use std::collections::VecDeque;
 use std::net::{SocketAddr, UdpSocket};
@@ -50,7 +52,8 @@ const PLAN_ATTEMPTS: usize = 3;
 pub struct FriClientConfig {
     /// Local address to bind (port 30200 on a real cell; port 0 in tests).
     pub bind: SocketAddr,
-    /// Accept datagrams only from this controller address.
+    /// Accept datagrams only from this controller address (its FRI port); the socket is
+    /// connected to it.
     pub controller: Option<SocketAddr>,
     /// Session settings.
     pub session: SessionConfig,
@@ -136,6 +139,9 @@ impl FriClient {
     /// Binds the socket and starts the driver thread.
     pub fn start(config: FriClientConfig, guard: SafetyGuard) -> Result<Self> {
         let socket = UdpSocket::bind(config.bind)?;
+        if let Some(controller) = config.controller {
+            socket.connect(controller)?;
+        }
         let local_addr = socket.local_addr()?;
         let shared = Arc::new(Shared {
             view: Mutex::new(View {

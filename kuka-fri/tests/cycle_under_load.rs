@@ -195,6 +195,7 @@ fn replies_stay_on_time_with_every_core_busy() {
     )
     .expect("client");
     let controller = SimServer::start(SimServerConfig {
+        bind: "127.0.0.1:0".parse().expect("addr"),
         realtime_priority: priority,
         ..SimServerConfig::new(
             client.local_addr(),

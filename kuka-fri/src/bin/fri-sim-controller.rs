@@ -1,194 +1,282 @@
 //! `fri-sim-controller`: the simulated KUKA controller behind a UDP socket.
 //!
-//! Sends FRI monitoring messages to a client, as a real controller does, and follows its
-//! commands. Used by the two-process loopback test and by hand against the agent.
+//! Sends FRI monitoring messages to a client from the controller's FRI port, as a real
+//! controller does, and follows its commands. Used by the two-process loopback test, by
+//! hand against the agent, and against KUKA's own client SDK examples. `--help` lists
+//! every flag.
 //!
-//! ```text
-//! fri-sim-controller --client 127.0.0.1:30200 [--bind 127.0.0.1:0] [--send-period-ms 5]
-//!     [--multiplier 1] [--duration-ms 10000] [--command] [--command-after-ms 0]
-//!     [--loss 0.0] [--delay-ms 0] [--jitter-ms 0] [--reorder 0.0] [--seed 1] [--noise 2e-5]
-//! ```
 //! The session opens in MONITORING_WAIT; with `--command` the robot application starts an
-//! FRI overlay as soon as MONITORING_READY is reached (and `--command-after-ms` has passed).
-//! After `--duration-ms` the session closes (a few IDLE messages are sent) and one summary
-//! line is printed: `sim-summary key=value ...`. The exit code is 1 if any command violated
-//! the limits or any datagram was malformed.
+//! FRI overlay (a held pose with a joint overlay) as soon as MONITORING_READY is reached
+//! and `--command-after-ms` has passed. After `--duration-ms` the session closes (IDLE
+//! messages for ten periods) and one summary line is printed:
+//! `sim-summary key=value ...`. The exit code is 1 if any command violated the limits,
+//! any datagram was malformed or any reply reflected a message never sent.
 
-use b2b_errors::chain;
-use std::net::{SocketAddr, UdpSocket};
+use std::net::{IpAddr, SocketAddr};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use kuka_fri::messages::MAX_DATAGRAM_SIZE;
-use kuka_fri::{Link, LinkConfig, SessionState, SimConfig, SimulatedController};
+use anyhow::Context;
+use clap::Parser;
 
-#[derive(Debug)]
-struct Args {
+use kuka_fri::messages::DEFAULT_PORT;
+use kuka_fri::{
+    DEFAULT_CYCLE_PRIORITY, LinkConfig, SessionState, SimConfig, SimServer, SimServerConfig,
+};
+
+/// The simulated KUKA controller (FRI 1.15) serving one client over UDP.
+///
+/// A controller and a client on one host cannot both hold the same port: KUKA's client
+/// binds 30200 on every address. When `--client` is a loopback address on the
+/// controller's own port and `--port` is not given, the controller therefore sends from
+/// an ephemeral port (and says so); a client given the controller's address needs the
+/// controller on another host or network namespace, as on a real cell.
+#[derive(Debug, Parser)]
+#[command(name = "fri-sim-controller", version)]
+struct Cli {
+    /// The FRI client's address (IP:PORT) to send monitoring messages to; replies from
+    /// any other address are not taken in.
+    #[arg(long)]
     client: SocketAddr,
-    bind: SocketAddr,
+    /// The controller's FRI port, which it binds and sends from [default: 30200].
+    #[arg(long)]
+    port: Option<u16>,
+    /// The controller's address to bind: an IP (with `--port`), or IP:PORT (port 0 for an
+    /// ephemeral one).
+    #[arg(long, default_value = "0.0.0.0", value_parser = parse_bind)]
+    bind: Bind,
+    /// Send period in ms (1..=100).
+    #[arg(long, default_value_t = 5)]
     send_period_ms: u32,
+    /// The client answers every MULTIPLIER-th message (receive period ≤ 100 ms).
+    #[arg(long, default_value_t = 1)]
     multiplier: u32,
-    duration: Duration,
+    /// How long the session stays open, in ms; then it closes (IDLE) and the summary is
+    /// printed.
+    #[arg(long, default_value_t = 10_000)]
+    duration_ms: u64,
+    /// Start an FRI overlay (COMMANDING_WAIT, then COMMANDING_ACTIVE) once
+    /// MONITORING_READY is reached.
+    #[arg(long)]
     command: bool,
-    command_after: Duration,
-    link: LinkConfig,
+    /// Start the overlay no earlier than this many ms after the start.
+    #[arg(long, default_value_t = 0)]
+    command_after_ms: u64,
+    /// Probability that a datagram is lost, in each direction.
+    #[arg(long, default_value_t = 0.0)]
+    loss: f64,
+    /// One-way delay in ms, in each direction.
+    #[arg(long, default_value_t = 0)]
+    delay_ms: u64,
+    /// Extra uniformly distributed one-way delay up to this many ms.
+    #[arg(long, default_value_t = 0)]
+    jitter_ms: u64,
+    /// Probability that a datagram is held back two periods (reordered).
+    #[arg(long, default_value_t = 0.0)]
+    reorder: f64,
+    /// Seed of the link impairments and the encoder noise.
+    #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Standard deviation of the encoder noise on measured positions, rad.
+    #[arg(long, default_value_t = 2e-5)]
     noise: f64,
+    /// Run the cycle thread with normal scheduling instead of SCHED_FIFO.
+    #[arg(long)]
+    normal_scheduling: bool,
 }
 
-fn parse() -> Result<Args, String> {
-    let mut client = None;
-    let mut a = Args {
-        client: SocketAddr::from(([127, 0, 0, 1], 30200)),
-        bind: SocketAddr::from(([127, 0, 0, 1], 0)),
-        send_period_ms: 5,
-        multiplier: 1,
-        duration: Duration::from_secs(10),
-        command: false,
-        command_after: Duration::ZERO,
-        link: LinkConfig::perfect(),
-        seed: 1,
-        noise: 2e-5,
-    };
-    let mut it = std::env::args().skip(1);
-    while let Some(flag) = it.next() {
-        if flag == "--command" {
-            a.command = true;
-            continue;
-        }
-        if flag == "--help" || flag == "-h" {
-            return Err("see the module documentation of fri-sim-controller".into());
-        }
-        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
-        let bad = |e: &dyn std::fmt::Display| format!("{flag} {value}: {e}");
-        let ms = |v: &str| {
-            v.parse::<u64>()
-                .map(Duration::from_millis)
-                .map_err(|e| bad(&e))
-        };
-        match flag.as_str() {
-            "--client" => client = Some(value.parse().map_err(|e| bad(&e))?),
-            "--bind" => a.bind = value.parse().map_err(|e| bad(&e))?,
-            "--send-period-ms" => a.send_period_ms = value.parse().map_err(|e| bad(&e))?,
-            "--multiplier" => a.multiplier = value.parse().map_err(|e| bad(&e))?,
-            "--duration-ms" => a.duration = ms(&value)?,
-            "--command-after-ms" => a.command_after = ms(&value)?,
-            "--loss" => a.link.loss = value.parse().map_err(|e| bad(&e))?,
-            "--delay-ms" => a.link.delay = ms(&value)?,
-            "--jitter-ms" => a.link.jitter = ms(&value)?,
-            "--reorder" => a.link.reorder = value.parse().map_err(|e| bad(&e))?,
-            "--seed" => a.seed = value.parse().map_err(|e| bad(&e))?,
-            "--noise" => a.noise = value.parse().map_err(|e| bad(&e))?,
-            other => return Err(format!("unknown argument {other}")),
-        }
+/// `--bind`: an address with or without a port.
+#[derive(Clone, Copy, Debug)]
+enum Bind {
+    Ip(IpAddr),
+    Addr(SocketAddr),
+}
+
+fn parse_bind(s: &str) -> Result<Bind, String> {
+    if let Ok(ip) = s.parse::<IpAddr>() {
+        return Ok(Bind::Ip(ip));
     }
-    a.client = client.ok_or("--client ADDR is required")?;
-    a.link.seed = a.seed.wrapping_add(1);
-    a.link.reorder_delay = Duration::from_millis(u64::from(a.send_period_ms) * 2);
-    Ok(a)
+    s.parse::<SocketAddr>()
+        .map(Bind::Addr)
+        .map_err(|_| format!("`{s}` is neither an IP address nor IP:PORT"))
 }
 
-fn run(args: &Args) -> Result<bool, Box<dyn std::error::Error>> {
-    let socket = UdpSocket::bind(args.bind)?;
-    let start = Instant::now();
-    let cfg = SimConfig {
-        send_period_ms: args.send_period_ms,
-        receive_multiplier: args.multiplier,
-        encoder_noise: args.noise,
-        seed: args.seed,
-        ..SimConfig::default()
-    };
-    let mut sim = SimulatedController::new(cfg, start)?;
-    let mut link = Link::new(args.link);
-    let mut buf = vec![0u8; MAX_DATAGRAM_SIZE];
-    let mut rx = vec![0u8; MAX_DATAGRAM_SIZE + 1];
-    let mut states_seen = vec![sim.state()];
-    let close_at = start + args.duration;
-    let end = close_at + sim.send_period() * 10;
-    let mut closed = false;
-    loop {
-        let now = Instant::now();
-        if now >= end {
-            break;
-        }
-        if !closed && now >= close_at {
-            sim.close_session();
-            closed = true;
-        }
-        if args.command
-            && !closed
-            && sim.state() == SessionState::MonitoringReady
-            && now >= start + args.command_after
-        {
-            sim.start_commanding();
-        }
-        while let Some(n) = sim.poll_transmit(now, &mut buf) {
-            link.send(now, &buf[..n]);
-        }
-        if states_seen.last() != Some(&sim.state()) {
-            states_seen.push(sim.state());
-        }
-        while let Some(d) = link.poll_deliver(now) {
-            // A send error (client not yet bound) is what a real controller would see too.
-            let _ = socket.send_to(&d, args.client);
-        }
-        let next = link
-            .next_delivery()
-            .map_or(sim.poll_timeout(), |t| t.min(sim.poll_timeout()));
-        let wait = next
-            .saturating_duration_since(Instant::now())
-            .max(Duration::from_micros(100));
-        socket.set_read_timeout(Some(wait))?;
-        match socket.recv_from(&mut rx) {
-            Ok((n, from)) if from == args.client => {
-                if let Err(e) = sim.handle_datagram(Instant::now(), &rx[..n]) {
-                    eprintln!("fri-sim-controller: rejected datagram: {}", chain(&e));
+impl Cli {
+    /// The address the controller binds, and a note when the default port had to give way.
+    fn bind_address(&self) -> (SocketAddr, Option<String>) {
+        match (self.bind, self.port) {
+            (Bind::Addr(a), _) => (a, None),
+            (Bind::Ip(ip), Some(port)) => (SocketAddr::new(ip, port), None),
+            (Bind::Ip(ip), None) => {
+                let same_host = self.client.ip().is_loopback() || self.client.ip() == ip;
+                if same_host && self.client.port() == DEFAULT_PORT {
+                    let note = format!(
+                        "the client {} holds port {DEFAULT_PORT} on this host; sending from an \
+                         ephemeral port instead (a client that connect()s to the controller's \
+                         address needs the controller on another host or network namespace)",
+                        self.client
+                    );
+                    (SocketAddr::new(ip, 0), Some(note))
+                } else {
+                    (SocketAddr::new(ip, DEFAULT_PORT), None)
                 }
             }
-            Ok(_) => {}
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                ) => {}
-            Err(_) => {} // ICMP port unreachable while the client is not up yet.
         }
     }
-    let stats = sim.stats();
-    let q = sim.q();
-    let states: Vec<&str> = states_seen.iter().map(|s| s.proto_name()).collect();
+
+    fn link(&self, seed: u64) -> LinkConfig {
+        LinkConfig {
+            loss: self.loss,
+            delay: Duration::from_millis(self.delay_ms),
+            jitter: Duration::from_millis(self.jitter_ms),
+            reorder: self.reorder,
+            reorder_delay: Duration::from_millis(u64::from(self.send_period_ms) * 2),
+            seed,
+        }
+    }
+}
+
+/// Runs the session; `Ok(false)` when a command violated the limits or a datagram was bad.
+fn run(cli: &Cli) -> anyhow::Result<bool> {
+    for (what, p) in [("--loss", cli.loss), ("--reorder", cli.reorder)] {
+        anyhow::ensure!(
+            (0.0..=1.0).contains(&p),
+            "{what} {p}: a probability in 0..=1"
+        );
+    }
+    let (bind, note) = cli.bind_address();
+    if let Some(note) = note {
+        eprintln!("fri-sim-controller: {note}");
+    }
+    let sim = SimConfig {
+        send_period_ms: cli.send_period_ms,
+        receive_multiplier: cli.multiplier,
+        encoder_noise: cli.noise,
+        seed: cli.seed,
+        ..SimConfig::default()
+    };
+    let delayed_start = cli.command && cli.command_after_ms > 0;
+    let server = SimServer::start(SimServerConfig {
+        bind,
+        auto_command: cli.command && !delayed_start,
+        downlink: cli.link(cli.seed.wrapping_add(1)),
+        uplink: cli.link(cli.seed.wrapping_add(2)),
+        realtime_priority: (!cli.normal_scheduling).then_some(DEFAULT_CYCLE_PRIORITY),
+        ..SimServerConfig::new(cli.client, sim)
+    })
+    .with_context(|| format!("cannot start the controller on {bind}"))?;
+    eprintln!(
+        "fri-sim-controller: FRI port {} sending to {} every {} ms",
+        server.local_addr(),
+        cli.client,
+        cli.send_period_ms
+    );
+    let start = Instant::now();
+    let command_at = start + Duration::from_millis(cli.command_after_ms);
+    let close_at = start + Duration::from_millis(cli.duration_ms);
+    let period = Duration::from_millis(u64::from(cli.send_period_ms));
+    let mut overlay_pending = delayed_start;
+    while Instant::now() < close_at {
+        anyhow::ensure!(server.is_running(), "the controller's cycle thread stopped");
+        if overlay_pending && Instant::now() >= command_at {
+            server.set_auto_command(true);
+            overlay_pending = false;
+        }
+        std::thread::sleep(
+            close_at
+                .saturating_duration_since(Instant::now())
+                .min(Duration::from_millis(10)),
+        );
+    }
+    server.close_session();
+    std::thread::sleep(period * 10);
+    let (controller, snap) = server.finish().context("the controller's cycle thread")?;
+    let stats = controller.stats();
+    let states: Vec<&str> = controller
+        .states_seen()
+        .iter()
+        .map(|s| s.proto_name())
+        .collect();
+    let q = controller.q();
     println!(
-        "sim-summary sent={} commands={} malformed={} stale={} violations={} aborted={} bad_reflections={} states={} q={}",
+        "sim-summary sent={} sent_idle={} commands={} malformed={} stale={} violations={} \
+         aborted={} bad_reflections={} missed_replies={} late_replies={} late_sends={} \
+         skipped_cycles={} max_send_lateness_us={} foreign={} states={} q={}",
         stats.sent,
+        stats.sent_idle,
         stats.commands,
         stats.malformed,
         stats.stale,
         stats.violations,
         stats.aborted,
         stats.bad_reflections,
+        stats.missed_replies,
+        stats.late_replies,
+        stats.late_sends,
+        stats.skipped_cycles,
+        stats.max_send_lateness.as_micros(),
+        snap.foreign,
         states.join(","),
         q.iter()
             .map(|v| format!("{v:.6}"))
             .collect::<Vec<_>>()
             .join(","),
     );
+    if controller.state() != SessionState::Idle {
+        eprintln!("fri-sim-controller: the session did not close");
+    }
     Ok(stats.violations == 0 && stats.malformed == 0 && stats.bad_reflections == 0)
 }
 
 fn main() -> ExitCode {
-    let args = match parse() {
-        Ok(a) => a,
-        Err(e) => {
-            eprintln!("fri-sim-controller: {e}");
-            return ExitCode::from(2);
-        }
-    };
-    match run(&args) {
+    let cli = Cli::parse();
+    match run(&cli) {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::FAILURE,
         Err(e) => {
-            eprintln!("fri-sim-controller: {}", chain(e.as_ref()));
+            eprintln!("fri-sim-controller: {e:#}");
             ExitCode::from(2)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    use super::*;
+
+    #[test]
+    fn every_flag_has_help() {
+        let cmd = Cli::command();
+        let missing: Vec<_> = cmd
+            .get_arguments()
+            .filter(|a| {
+                a.get_help().is_none() && !["help", "version"].contains(&a.get_id().as_str())
+            })
+            .map(|a| a.get_id().to_string())
+            .collect();
+        assert!(missing.is_empty(), "flags without help: {missing:?}");
+    }
+
+    #[test]
+    fn the_controller_binds_its_fri_port_unless_a_local_client_holds_it() {
+        let cli = |args: &[&str]| {
+            Cli::try_parse_from(["fri-sim-controller"].iter().chain(args)).expect("parses")
+        };
+        let (a, note) = cli(&["--client", "192.168.1.5:30200"]).bind_address();
+        assert_eq!((a.to_string(), note), ("0.0.0.0:30200".into(), None));
+        let (a, note) = cli(&["--client", "127.0.0.1:30200"]).bind_address();
+        assert_eq!(a.port(), 0);
+        assert!(note.is_some());
+        let (a, _) = cli(&["--client", "127.0.0.1:30200", "--port", "30201"]).bind_address();
+        assert_eq!(a.to_string(), "0.0.0.0:30201");
+        let (a, _) = cli(&["--client", "127.0.0.1:40000", "--bind", "127.0.0.1:0"]).bind_address();
+        assert_eq!(a.to_string(), "127.0.0.1:0");
+        let (a, _) = cli(&["--client", "127.0.0.1:40000", "--bind", "127.0.0.1"]).bind_address();
+        assert_eq!(a.to_string(), "127.0.0.1:30200");
+        assert!(
+            Cli::try_parse_from(["x", "--client", "127.0.0.1:1", "--bind", "nowhere"]).is_err()
+        );
     }
 }

@@ -3,6 +3,9 @@
 
 #![allow(dead_code)]
 
+pub mod sdk;
+
+use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use b2b_robot::{JointLimits, Joints, WorkspaceBox};
@@ -37,6 +40,8 @@ pub struct Harness {
     pub down: Link,
     pub up: Link,
     pub sent: Vec<SentCommand>,
+    /// The interpolated position each controller message carried, by sequence counter.
+    pub ipo_sent: HashMap<u32, Joints>,
     pub events: Vec<Event>,
     pub client_errors: usize,
     /// Deliver nothing from the controller while true (to provoke timeouts).
@@ -59,6 +64,7 @@ impl Harness {
             down: Link::new(link),
             up: Link::new(up_cfg),
             sent: Vec::new(),
+            ipo_sent: HashMap::new(),
             events: Vec::new(),
             client_errors: 0,
             cut: false,
@@ -91,6 +97,12 @@ impl Harness {
         self.now = self.now.max(next);
         let now = self.now;
         while let Some(n) = self.sim.poll_transmit(now, &mut self.buf) {
+            let (header, msg) =
+                codec::decode_monitoring_with_header(&self.buf[..n]).expect("valid message");
+            if let Some(ipo) = msg.ipo_data.and_then(|i| i.joint_position) {
+                let ipo = codec::joints(codec::MONITORING, "ipo", &ipo).expect("7 joints");
+                self.ipo_sent.insert(header.sequence_counter, ipo);
+            }
             if !self.cut {
                 self.down.send(now, &self.buf[..n]);
             }
