@@ -72,13 +72,23 @@ pub const MAX_COORDINATE_M: f64 = 10.0;
 // calibration (20 to 200 captures of 2 to 4 robots, 10 to 100 touches).
 
 /// Most rows of one robot's `captures.csv` (pose rows per robot). A hand-eye
-/// needs 10 to 50 captures; the pre-fit checks and the joint fit cost grows with
-/// the rows.
-pub const MAX_CAPTURES_PER_ROBOT: usize = 10_000;
+/// needs 10 to 50 captures. The closed-form hand-eyes and the motion checks
+/// compare every pair of captures, so their work grows with the square of
+/// this (1,000 rows of two robots: 32 s and 220 MB in a debug build).
+pub const MAX_CAPTURES_PER_ROBOT: usize = 1_000;
+/// Most captures of all robots of one dataset times the number of robots
+/// (2 robots: 2,000 captures in all; 12 robots: 333). The joint fit's normal
+/// equations are dense over every robot's unknowns, so each capture costs
+/// the square of the robots, and the leave-one-out spread a factorisation of
+/// their cube: 12 robots of 166 captures ran past 500 s in a debug build, 12
+/// of 20 took 71 s, 2 of 1,000 took 32 s.
+pub const MAX_CAPTURES_TIMES_ROBOTS: usize = 4_000;
 /// Most robots in one `dataset.json`. The joint fit of every base solves one
-/// dense problem over all robots, whose cost grows with the cube of their
-/// number (10 robots took 3.8 s, 30 took 54 s); a platform has 2 to 4 arms.
-pub const MAX_ROBOTS: usize = 16;
+/// dense problem over all robots: per capture, the normal equations cost the
+/// square of the robots and the leave-one-out spread a factorisation of their
+/// cube (10 robots took 3.8 s, 30 took 54 s, 100 ran past 900 s); a platform
+/// has 2 to 4 arms.
+pub const MAX_ROBOTS: usize = 12;
 /// Most rows of one touch file (`touch_points.csv` and the pair files).
 pub const MAX_TOUCHES: usize = 10_000;
 /// Most samples `coordinator import` takes from another tool's file: they
@@ -198,6 +208,7 @@ impl Dataset {
             })?;
         }
         let mut robots = Vec::with_capacity(manifest.robots.len());
+        let mut total_captures = 0;
         for (i, robot) in manifest.robots.iter().enumerate() {
             let folder = root.join(&robot.id);
             if !folder.is_dir() {
@@ -223,6 +234,18 @@ impl Dataset {
                     real_root: &real_root,
                 },
             )?;
+            total_captures += captures.len();
+            let limit = MAX_CAPTURES_TIMES_ROBOTS / manifest.robots.len();
+            if total_captures > limit {
+                return Err(DatasetError::TooManyRows {
+                    file: captures_file,
+                    what: "captures in this and the earlier robots' captures.csv",
+                    limit,
+                    constant: "MAX_CAPTURES_TIMES_ROBOTS divided by the robots",
+                    advice: "the joint fit of every base grows with the captures times the \
+                             square of the robots: keep a subset of each robot's captures",
+                });
+            }
             robots.push(RobotData {
                 id: robot.id.clone(),
                 captures,

@@ -285,3 +285,45 @@ fn a_touch_file_does_not_stop_a_load_without_touches() {
     assert_eq!(ds.robots.len(), 1);
     assert!(ds.touch_points.is_none());
 }
+
+/// Each robot within its limit, but together over the dataset's: refused at
+/// the robot whose rows pass it, naming the limit.
+#[test]
+fn more_captures_in_all_than_the_dataset_limit_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    copy_dir(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-3x12"),
+        &dir,
+    );
+    // Three robots: at most a third of MAX_CAPTURES_TIMES_ROBOTS in all.
+    let per_robot = b2b_dataset::MAX_CAPTURES_TIMES_ROBOTS / 3 / 2;
+    assert!(per_robot <= MAX_CAPTURES_PER_ROBOT);
+    for robot in ["robot1", "robot2", "robot3"] {
+        let captures = dir.join(robot).join("captures.csv");
+        std::fs::write(
+            &captures,
+            "image,depth,tx,ty,tz,qx,qy,qz,qw,ctx,cty,ctz,cqx,cqy,cqz,cqw\n\
+             ,,0.3,-0.3,0.5,0,0,0,1,0,0,0.5,0,0,0,1\n",
+        )
+        .unwrap();
+        repeat_rows(&captures, per_robot);
+    }
+    let e = load_within(&dir).unwrap_err();
+    let text = e.to_string();
+    assert!(
+        text.contains("robot3/captures.csv")
+            && text.contains("MAX_CAPTURES_TIMES_ROBOTS divided by the robots")
+            && text.contains(&format!(
+                "more than {}",
+                b2b_dataset::MAX_CAPTURES_TIMES_ROBOTS / 3
+            )),
+        "{text}"
+    );
+    // At exactly the limit the dataset loads.
+    repeat_rows(
+        &dir.join("robot3/captures.csv"),
+        b2b_dataset::MAX_CAPTURES_TIMES_ROBOTS / 3 - 2 * per_robot,
+    );
+    load_within(&dir).unwrap();
+}
