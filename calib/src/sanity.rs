@@ -41,6 +41,17 @@
 //! data scores well below 1σ and the limit of [`SanityOptions::max_score`] (5σ)
 //! leaves a wide margin.
 //!
+//! # Bounded work
+//!
+//! Up to [`MAX_PARTNERS`]` + 1` captures every pair is compared. Beyond, each
+//! capture is compared with [`MAX_PARTNERS`] others chosen deterministically
+//! ([`pair_indices`]: the captures `MAX_PARTNERS / 2` offsets ahead and behind,
+//! the offsets spread from 1 to half the list, so near and far captures both
+//! count), so time and memory grow linearly with the captures, not with their
+//! square (all pairs of 3,000 rows took 21 s and 1.2 GB; of a million rows,
+//! an allocation of 28 TB). A capture's median over 48 others still singles out
+//! a typo row, as the median over all does.
+//!
 //! Every capture gets the median score of its pairs. A capture whose median exceeds
 //! the limit disagrees with most others: it is listed in
 //! [`SanityReport::suspects`] (a typo row, a pose recorded while the robot moved),
@@ -151,7 +162,8 @@ pub struct SuspectCapture {
 #[derive(Debug, Clone, PartialEq)]
 pub struct SanityReport {
     pub captures: usize,
-    /// Pairs compared (all `i < j`).
+    /// Pairs compared (all `i < j` up to `MAX_PARTNERS + 1` captures, else
+    /// `MAX_PARTNERS / 2` per capture: [`pair_indices`]).
     pub pairs: usize,
     /// Pairs whose pitches were compared.
     pub pitch_pairs: usize,
@@ -169,6 +181,48 @@ pub struct SanityReport {
     pub median_board_distance_m: f64,
     /// Captures that disagree with most others (to reject, with their reason).
     pub suspects: Vec<SuspectCapture>,
+}
+
+/// Most other captures one capture is compared with (module docs, "Bounded
+/// work"); up to `MAX_PARTNERS + 1` captures, all pairs are compared.
+pub const MAX_PARTNERS: usize = 48;
+
+/// The pairs `(i, j)` of `n` captures that the checks compare: every `i < j`
+/// up to `MAX_PARTNERS + 1` captures; beyond, each capture `i` with `i + s`
+/// (modulo `n`) for `MAX_PARTNERS / 2` distinct offsets `s` spread over
+/// `1 ..= (n - 1) / 2`, so each capture is in `MAX_PARTNERS` pairs and no pair
+/// is listed twice. Deterministic: the same captures always give the same pairs.
+pub fn pair_indices(n: usize) -> Vec<(usize, usize)> {
+    if n <= MAX_PARTNERS + 1 {
+        let mut out = Vec::with_capacity(n * n.saturating_sub(1) / 2);
+        for i in 0..n {
+            for j in (i + 1)..n {
+                out.push((i, j));
+            }
+        }
+        return out;
+    }
+    let m = MAX_PARTNERS / 2;
+    // n >= 2m + 2, so span >= m - 1 and the offsets rise by at least 1; the
+    // largest, (n - 1) / 2, is below n / 2, so no pair comes back reversed.
+    let span = (n - 1) / 2 - 1;
+    let offsets: Vec<usize> = (0..m).map(|k| 1 + k * span / (m - 1)).collect();
+    let mut out = Vec::with_capacity(n * m);
+    for i in 0..n {
+        for s in &offsets {
+            out.push((i, (i + s) % n));
+        }
+    }
+    out
+}
+
+/// How many pairs [`pair_indices`] lists for `n` captures.
+pub fn pair_count(n: usize) -> usize {
+    if n <= MAX_PARTNERS + 1 {
+        n * n.saturating_sub(1) / 2
+    } else {
+        n * (MAX_PARTNERS / 2)
+    }
 }
 
 /// One relative motion: angle, unit axis, translation.
@@ -257,9 +311,10 @@ impl PairTable {
         let sigma_angle = (2.0 * (robot.rot.powi(2) + camera.rot.powi(2))).sqrt();
         let lo = o.min_pitch_angle_rad;
         let hi = std::f64::consts::PI - o.min_pitch_angle_rad;
-        let mut pairs = Vec::with_capacity(n * n.saturating_sub(1) / 2);
-        for i in 0..n {
-            for j in (i + 1)..n {
+        let indices = pair_indices(n);
+        let mut pairs = Vec::with_capacity(indices.len());
+        {
+            for (i, j) in indices {
                 let a = Motion::of(&(base_from_flange[i].inverse() * base_from_flange[j]));
                 let mut b_iso = camera_from_target[i] * camera_from_target[j].inverse();
                 b_iso.translation.vector /= camera_scale;
@@ -352,8 +407,8 @@ fn pitch_ratio(
     let hi = std::f64::consts::PI - lo;
     let mut ratios = Vec::new();
     let (mut sab, mut saa) = (0.0, 0.0);
-    for i in 0..n {
-        for j in (i + 1)..n {
+    {
+        for (i, j) in pair_indices(n) {
             let a = Motion::of(&(base_from_flange[i].inverse() * base_from_flange[j]));
             let b = Motion::of(&(camera_from_target[i] * camera_from_target[j].inverse()));
             if !(a.angle >= lo && a.angle <= hi && b.angle >= lo && b.angle <= hi) {
@@ -442,7 +497,7 @@ pub fn check_pose_pairs(
     let median_board_distance_m = median(&mut dist);
     let mut report = SanityReport {
         captures: n,
-        pairs: n * n.saturating_sub(1) / 2,
+        pairs: pair_count(n),
         pitch_pairs: 0,
         checked: false,
         angle_score: 0.0,
@@ -749,6 +804,48 @@ mod tests {
             eprintln!("seed {seed}: plus one 30 deg row: suspects {idx:?}");
             assert_eq!(idx, vec![4, 9]);
         }
+    }
+
+    /// Beyond `MAX_PARTNERS + 1` captures each capture is in `MAX_PARTNERS`
+    /// distinct pairs (no pair twice, none with itself); up to it, all pairs.
+    #[test]
+    fn pairs_are_bounded_per_capture() {
+        for n in [0, 1, 2, 5, MAX_PARTNERS + 1] {
+            assert_eq!(pair_indices(n).len(), n * n.saturating_sub(1) / 2);
+            assert_eq!(pair_count(n), pair_indices(n).len());
+        }
+        for n in [MAX_PARTNERS + 2, MAX_PARTNERS + 3, 100, 101, 3000] {
+            let pairs = pair_indices(n);
+            assert_eq!(pairs.len(), pair_count(n));
+            let mut per = vec![0usize; n];
+            let mut seen = std::collections::HashSet::new();
+            for &(i, j) in &pairs {
+                assert_ne!(i, j);
+                assert!(seen.insert((i.min(j), i.max(j))), "n {n}: ({i}, {j}) twice");
+                per[i] += 1;
+                per[j] += 1;
+            }
+            assert!(per.iter().all(|&k| k == MAX_PARTNERS), "n {n}");
+            // Near and far partners both.
+            let far = pairs
+                .iter()
+                .map(|&(i, j)| j.abs_diff(i).min(n - j.abs_diff(i)))
+                .max();
+            assert_eq!(far, Some((n - 1) / 2), "n {n}");
+        }
+    }
+
+    /// A typo row among 3,000 captures is still found, with the work bounded:
+    /// 48 partners per capture (72,000 pairs, not 4.5 million).
+    #[test]
+    fn a_typo_row_among_thousands_is_found_with_bounded_pairs() {
+        let s = robot(7, 3000, 0.2e-3, 0.02, 0.3);
+        let mut b = s.base_from_flange.clone();
+        b[1234].translation.vector.x += 0.65;
+        let rep = check(&b, &s.camera_from_target).unwrap();
+        assert_eq!(rep.pairs, 3000 * MAX_PARTNERS / 2);
+        let idx: Vec<usize> = rep.suspects.iter().map(|x| x.index).collect();
+        assert_eq!(idx, vec![1234], "{rep:?}");
     }
 
     #[test]

@@ -74,6 +74,22 @@ pub struct TouchPair {
     pub tip2_in_base2: Point3<f64>,
 }
 
+/// The row limit of `captures.csv`.
+const CAPTURE_LIMIT: table::RowLimit = table::RowLimit {
+    max: crate::MAX_CAPTURES_PER_ROBOT,
+    what: "pose rows",
+    constant: "MAX_CAPTURES_PER_ROBOT",
+    advice: "a hand-eye needs tens of captures: keep a subset, or split the recording",
+};
+
+/// The row limit of a touch file.
+const TOUCH_LIMIT: table::RowLimit = table::RowLimit {
+    max: crate::MAX_TOUCHES,
+    what: "touches",
+    constant: "MAX_TOUCHES",
+    advice: "a verification takes tens to hundreds of touches: keep a subset",
+};
+
 /// Reads one robot's `captures.csv` and checks it, including that its files exist.
 pub(crate) fn read_captures(
     file: &Path,
@@ -82,7 +98,7 @@ pub(crate) fn read_captures(
     files: FilesAt<'_>,
 ) -> Result<Vec<Capture>, DatasetError> {
     let bytes = crate::read_bytes(file, "each robot folder must contain captures.csv")?;
-    let table = table::parse_table(&bytes, file)?;
+    let table = table::parse_table_limited(&bytes, file, Some(CAPTURE_LIMIT))?;
     parse_captures(&table, robot, targets, Some(files))
 }
 
@@ -180,6 +196,7 @@ fn check_files(
 ) -> Result<(), DatasetError> {
     if let Some(image) = &capture.image {
         let full = files.robot_dir.join(image);
+        not_special(&full, || row.at(file, "image"))?;
         if !full.is_file() {
             return Err(DatasetError::MissingImage {
                 at: row.at(file, "image"),
@@ -190,6 +207,7 @@ fn check_files(
     }
     if let Some(depth) = &capture.depth {
         let full = files.robot_dir.join(depth);
+        not_special(&full, || row.at(file, "depth"))?;
         if !full.is_file() {
             return Err(DatasetError::MissingDepth {
                 at: row.at(file, "depth"),
@@ -199,6 +217,21 @@ fn check_files(
         crate::inside(files.real_root, &full, || row.at(file, "depth"))?;
     }
     Ok(())
+}
+
+/// Refuses an image path that exists but is a named pipe, a device, a directory
+/// or a socket, from its metadata (never opened).
+fn not_special(full: &Path, at: impl FnOnce() -> Location) -> Result<(), DatasetError> {
+    match std::fs::metadata(full) {
+        Ok(meta) => match crate::not_a_regular_file(&meta) {
+            Some(kind) => Err(DatasetError::BadPath {
+                at: at(),
+                problem: format!("{} is {kind}, not a regular file", full.display()),
+            }),
+            None => Ok(()),
+        },
+        Err(_) => Ok(()),
+    }
 }
 
 /// The value rules of `captures.csv`, applied row by row.
@@ -345,7 +378,7 @@ pub fn read_touch_points(file: &Path) -> Result<Vec<TouchPair>, DatasetError> {
         file,
         "expected a touch-points CSV with header x1,y1,z1,x2,y2,z2",
     )?;
-    let table = table::parse_table(&bytes, file)?;
+    let table = table::parse_table_limited(&bytes, file, Some(TOUCH_LIMIT))?;
     let columns = table::map_columns(&table, &TOUCH_COLUMNS, &[LOCATION_COLUMN])?;
     let mut pairs = Vec::with_capacity(table.rows.len());
     for row in &table.rows {

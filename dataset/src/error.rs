@@ -90,6 +90,35 @@ pub enum DatasetError {
     #[error("{}: file not found; {what}", file.display())]
     MissingFile { file: PathBuf, what: &'static str },
 
+    /// An input path that is a named pipe, a device, a directory or a socket:
+    /// refused from its metadata, never opened (a pipe would block).
+    #[error("{}: is {kind}, not a regular file; give the path of a file", file.display())]
+    NotARegularFile { file: PathBuf, kind: &'static str },
+
+    /// An input file larger than [`crate::MAX_TEXT_FILE_BYTES`].
+    #[error(
+        "{}: {bytes} bytes; files over {limit} bytes (MAX_TEXT_FILE_BYTES) are not read",
+        file.display()
+    )]
+    FileTooLarge {
+        file: PathBuf,
+        bytes: u64,
+        limit: u64,
+    },
+
+    /// A file with more rows (captures, touches, samples) than its limit; reading
+    /// stops there.
+    #[error("{}: more than {limit} {what} (the limit, {constant}); {advice}", file.display())]
+    TooManyRows {
+        file: PathBuf,
+        /// What a row is, e.g. `pose rows`.
+        what: &'static str,
+        limit: usize,
+        /// The constant that sets the limit, e.g. `MAX_CAPTURES_PER_ROBOT`.
+        constant: &'static str,
+        advice: &'static str,
+    },
+
     /// A file exists but could not be read or written.
     #[error("{}", file.display())]
     Io {
@@ -281,6 +310,9 @@ impl DatasetError {
             | Io { .. }
             | Json { .. }
             | Yaml { .. }
+            | NotARegularFile { .. }
+            | FileTooLarge { .. }
+            | TooManyRows { .. }
             | TouchPointsNeedTwoRobots { .. }
             | AmbiguousTouchFile { .. } => None,
             WrongFormat { at, .. }

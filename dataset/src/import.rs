@@ -124,13 +124,28 @@ fn pose_only(
     }
 }
 
+/// Refuses more than [`crate::MAX_IMPORT_SAMPLES`] samples.
+fn check_sample_count(file: &Path, n: usize) -> Result<(), DatasetError> {
+    if n <= crate::MAX_IMPORT_SAMPLES {
+        return Ok(());
+    }
+    Err(DatasetError::TooManyRows {
+        file: file.to_owned(),
+        what: "samples",
+        limit: crate::MAX_IMPORT_SAMPLES,
+        constant: "MAX_IMPORT_SAMPLES",
+        advice: "the samples become one robot's captures, and a hand-eye needs tens: keep a subset",
+    })
+}
+
 /// Reads a YAML file into `T`, naming the file in errors.
 fn read_yaml<T: serde::de::DeserializeOwned>(file: &Path) -> Result<T, DatasetError> {
-    let text = std::fs::read_to_string(file).map_err(|source| DatasetError::Io {
-        file: file.to_owned(),
-        source,
-    })?;
-    serde_yaml::from_str(&text).map_err(|source| DatasetError::Yaml {
+    let bytes = crate::read_bytes_max(
+        file,
+        "expected another tool's saved samples (YAML)",
+        crate::MAX_SAMPLES_FILE_BYTES,
+    )?;
+    serde_yaml::from_slice(&bytes).map_err(|source| DatasetError::Yaml {
         file: file.to_owned(),
         source,
     })
@@ -211,6 +226,7 @@ pub fn read_moveit_samples(file: &Path) -> Result<Vec<Capture>, DatasetError> {
             reason: "no samples".into(),
         });
     }
+    check_sample_count(file, samples.len())?;
     samples
         .iter()
         .enumerate()
@@ -257,6 +273,7 @@ pub fn read_easy_handeye_samples(file: &Path) -> Result<Vec<Capture>, DatasetErr
             reason: "no samples".into(),
         });
     }
+    check_sample_count(file, parsed.samples.len())?;
     parsed
         .samples
         .iter()

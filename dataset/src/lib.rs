@@ -43,7 +43,8 @@ pub use captures::{
 };
 pub use error::{DatasetError, Location};
 pub use manifest::{
-    CameraIntrinsics, DIST_LENGTHS, Manifest, RobotManifest, TARGET_KINDS, Target, dictionary_size,
+    CameraIntrinsics, DIST_LENGTHS, MODELLED_DIST_TERMS, Manifest, RobotManifest, TARGET_KINDS,
+    Target, dictionary_size,
 };
 pub use truth::{
     GroundTruth, Reference, load_ground_truth, load_reference, write_ground_truth, write_reference,
@@ -64,6 +65,41 @@ pub const REFERENCE_FILE: &str = "reference.json";
 /// Largest coordinate, in metres, that is accepted as metres. A robot cell is a few
 /// metres across; a larger number is almost certainly millimetres.
 pub const MAX_COORDINATE_M: f64 = 10.0;
+
+// Every input is bounded, so that no file makes a command run out of memory or
+// time: a file over a limit is refused at the door, with the limit in the
+// message, before the work it would cause. The limits are far above any real
+// calibration (20 to 200 captures of 2 to 4 robots, 10 to 100 touches).
+
+/// Most rows of one robot's `captures.csv` (pose rows per robot). A hand-eye
+/// needs 10 to 50 captures. The closed-form hand-eyes and the motion checks
+/// compare every pair of captures, so their work grows with the square of
+/// this (1,000 rows of two robots: 32 s and 220 MB in a debug build).
+pub const MAX_CAPTURES_PER_ROBOT: usize = 1_000;
+/// Most captures of all robots of one dataset times the number of robots
+/// (2 robots: 2,000 captures in all; 12 robots: 333). The joint fit's normal
+/// equations are dense over every robot's unknowns, so each capture costs
+/// the square of the robots, and the leave-one-out spread a factorisation of
+/// their cube: 12 robots of 166 captures ran past 500 s in a debug build, 12
+/// of 20 took 71 s, 2 of 1,000 took 32 s.
+pub const MAX_CAPTURES_TIMES_ROBOTS: usize = 4_000;
+/// Most robots in one `dataset.json`. The joint fit of every base solves one
+/// dense problem over all robots: per capture, the normal equations cost the
+/// square of the robots and the leave-one-out spread a factorisation of their
+/// cube (10 robots took 3.8 s, 30 took 54 s, 100 ran past 900 s); a platform
+/// has 2 to 4 arms.
+pub const MAX_ROBOTS: usize = 12;
+/// Most rows of one touch file (`touch_points.csv` and the pair files).
+pub const MAX_TOUCHES: usize = 10_000;
+/// Most samples `coordinator import` takes from another tool's file: they
+/// become one robot's captures, so [`MAX_CAPTURES_PER_ROBOT`].
+pub const MAX_IMPORT_SAMPLES: usize = MAX_CAPTURES_PER_ROBOT;
+/// Largest text file (CSV, JSON) that is read at all (256 MiB): a file within
+/// the row limits is a few megabytes.
+pub const MAX_TEXT_FILE_BYTES: u64 = 256 << 20;
+/// Largest YAML samples file `coordinator import` reads (32 MiB; a sample is a
+/// few hundred bytes, and the YAML parser holds the whole document).
+pub const MAX_SAMPLES_FILE_BYTES: u64 = 32 << 20;
 
 /// A loaded dataset: everything a calibration may see.
 #[derive(Debug, Clone, PartialEq)]
@@ -131,6 +167,17 @@ impl Dataset {
     /// validates all of it, including that every named image exists. Never reads
     /// `ground_truth.json` or `reference.json`.
     pub fn load(dir: &Path) -> Result<Dataset, DatasetError> {
+        Self::load_with(dir, true)
+    }
+
+    /// [`Dataset::load`] without the touch files (neither read nor checked:
+    /// [`Dataset::touch_points`] and [`Dataset::pair_touch_points`] are empty),
+    /// for a command that does not use them, such as one robot's hand-eye.
+    pub fn load_without_touches(dir: &Path) -> Result<Dataset, DatasetError> {
+        Self::load_with(dir, false)
+    }
+
+    fn load_with(dir: &Path, touches: bool) -> Result<Dataset, DatasetError> {
         let root = absolute(dir);
         let manifest = Manifest::load(&root)?;
         let manifest_file = root.join(MANIFEST_FILE);
@@ -161,6 +208,7 @@ impl Dataset {
             })?;
         }
         let mut robots = Vec::with_capacity(manifest.robots.len());
+        let mut total_captures = 0;
         for (i, robot) in manifest.robots.iter().enumerate() {
             let folder = root.join(&robot.id);
             if !folder.is_dir() {
@@ -186,9 +234,30 @@ impl Dataset {
                     real_root: &real_root,
                 },
             )?;
+            total_captures += captures.len();
+            let limit = MAX_CAPTURES_TIMES_ROBOTS / manifest.robots.len();
+            if total_captures > limit {
+                return Err(DatasetError::TooManyRows {
+                    file: captures_file,
+                    what: "captures in this and the earlier robots' captures.csv",
+                    limit,
+                    constant: "MAX_CAPTURES_TIMES_ROBOTS divided by the robots",
+                    advice: "the joint fit of every base grows with the captures times the \
+                             square of the robots: keep a subset of each robot's captures",
+                });
+            }
             robots.push(RobotData {
                 id: robot.id.clone(),
                 captures,
+            });
+        }
+        if !touches {
+            return Ok(Dataset {
+                root,
+                manifest,
+                robots,
+                touch_points: None,
+                pair_touch_points: BTreeMap::new(),
             });
         }
         let touch_file = root.join(TOUCH_POINTS_FILE);
@@ -494,15 +563,100 @@ pub(crate) fn inside(
     })
 }
 
-pub(crate) fn read_bytes(file: &Path, what: &'static str) -> Result<Vec<u8>, DatasetError> {
-    match fs::read(file) {
-        Ok(bytes) => Ok(bytes),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(DatasetError::MissingFile {
-            file: file.to_owned(),
-            what,
-        }),
-        Err(e) => Err(DatasetError::io(file, e)),
+/// What a path that is not a regular file is, in words (`a named pipe`, `a
+/// directory`, ...), from its metadata (symlinks followed); `None` for a regular
+/// file. Never opens the file: opening a named pipe blocks until a writer comes.
+pub fn not_a_regular_file(meta: &fs::Metadata) -> Option<&'static str> {
+    let kind = meta.file_type();
+    if kind.is_file() {
+        return None;
     }
+    if kind.is_dir() {
+        return Some("a directory");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if kind.is_fifo() {
+            return Some("a named pipe (FIFO)");
+        }
+        if kind.is_char_device() || kind.is_block_device() {
+            return Some("a device");
+        }
+        if kind.is_socket() {
+            return Some("a socket");
+        }
+    }
+    Some("not a regular file")
+}
+
+/// Checks that `file` is a regular file of at most [`MAX_TEXT_FILE_BYTES`],
+/// from its metadata, without opening it (a named pipe would block, a device
+/// never end).
+pub fn check_input_file(file: &Path, what: &'static str) -> Result<u64, DatasetError> {
+    check_input_file_max(file, what, MAX_TEXT_FILE_BYTES)
+}
+
+/// [`check_input_file`] with another size limit.
+pub(crate) fn check_input_file_max(
+    file: &Path,
+    what: &'static str,
+    max: u64,
+) -> Result<u64, DatasetError> {
+    let meta = match fs::metadata(file) {
+        Ok(meta) => meta,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(DatasetError::MissingFile {
+                file: file.to_owned(),
+                what,
+            });
+        }
+        Err(e) => return Err(DatasetError::io(file, e)),
+    };
+    if let Some(kind) = not_a_regular_file(&meta) {
+        return Err(DatasetError::NotARegularFile {
+            file: file.to_owned(),
+            kind,
+        });
+    }
+    if meta.len() > max {
+        return Err(DatasetError::FileTooLarge {
+            file: file.to_owned(),
+            bytes: meta.len(),
+            limit: max,
+        });
+    }
+    Ok(meta.len())
+}
+
+/// Reads a whole input file after [`check_input_file`], never more than
+/// [`MAX_TEXT_FILE_BYTES`] (a file that grows while read is cut there and
+/// refused).
+pub(crate) fn read_bytes(file: &Path, what: &'static str) -> Result<Vec<u8>, DatasetError> {
+    read_bytes_max(file, what, MAX_TEXT_FILE_BYTES)
+}
+
+/// [`read_bytes`] with another size limit.
+pub(crate) fn read_bytes_max(
+    file: &Path,
+    what: &'static str,
+    max: u64,
+) -> Result<Vec<u8>, DatasetError> {
+    use std::io::Read;
+    let len = check_input_file_max(file, what, max)?;
+    let f = fs::File::open(file).map_err(|e| DatasetError::io(file, e))?;
+    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+    f.take(max + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| DatasetError::io(file, e))?;
+    if bytes.len() as u64 > max {
+        return Err(DatasetError::FileTooLarge {
+            file: file.to_owned(),
+            bytes: bytes.len() as u64,
+            limit: max,
+        });
+    }
+    Ok(bytes)
 }
 
 pub(crate) fn read_text(file: &Path, what: &'static str) -> Result<String, DatasetError> {

@@ -109,8 +109,11 @@ pub struct CameraIntrinsics {
     pub dist: Vec<f64>,
 }
 
-/// Distortion vector lengths OpenCV accepts.
+/// Distortion vector lengths OpenCV accepts (12 and 14 with their thin-prism and
+/// tilt terms zero: [`MODELLED_DIST_TERMS`]).
 pub const DIST_LENGTHS: [usize; 5] = [4, 5, 8, 12, 14];
+/// The distortion terms the calibration models: `k1, k2, p1, p2, k3, k4, k5, k6`.
+pub const MODELLED_DIST_TERMS: usize = 8;
 
 /// Number of markers of an OpenCV predefined dictionary, `None` for an unknown name.
 pub fn dictionary_size(name: &str) -> Option<u64> {
@@ -241,6 +244,19 @@ impl Manifest {
             return Err(DatasetError::InvalidManifest {
                 at: Location::field(file, "robots"),
                 reason: "no robots are listed".into(),
+            });
+        }
+        if self.robots.len() > crate::MAX_ROBOTS {
+            return Err(DatasetError::InvalidManifest {
+                at: Location::field(file, "robots"),
+                reason: format!(
+                    "{} robots are listed; at most {} (MAX_ROBOTS) are calibrated in one dataset: \
+                     the joint fit of every base grows with the cube of their number. Calibrate \
+                     them in groups of at most {} that share the reference robot",
+                    self.robots.len(),
+                    crate::MAX_ROBOTS,
+                    crate::MAX_ROBOTS
+                ),
             });
         }
         let mut seen: HashMap<&str, usize> = HashMap::new();
@@ -526,7 +542,8 @@ impl CameraIntrinsics {
             return bad(
                 "dist",
                 format!(
-                    "dist has {} entries; OpenCV takes 4, 5, 8, 12 or 14 (k1, k2, p1, p2[, k3, ...])",
+                    "dist has {} entries; OpenCV takes 4, 5, 8, 12 or 14 (k1, k2, p1, p2[, k3[, k4, \
+                     k5, k6[, s1..s4[, tx, ty]]]]; the thin-prism and tilt terms must be 0 here)",
                     self.dist.len()
                 ),
             );
@@ -537,7 +554,28 @@ impl CameraIntrinsics {
                 format!("dist[{i}] is {}", self.dist[i]),
             );
         }
+        // 12 or 14 terms: OpenCV's thin-prism s1..s4 and tilt tx, ty follow k1..k6;
+        // the calibration models k1..k6, so those must be zero (as OpenCV writes
+        // them when they were not fitted).
+        if let Some(i) = (MODELLED_DIST_TERMS..self.dist.len()).find(|&i| self.dist[i] != 0.0) {
+            return bad(
+                &format!("dist[{i}]"),
+                format!(
+                    "dist[{i}] is {}: the thin-prism (s1..s4, dist[8..12]) and tilt (tx, ty, \
+                     dist[12..14]) terms are not modelled; 12 or 14 entries are accepted when \
+                     those are 0, else give 4, 5 or 8 (k1, k2, p1, p2[, k3[, k4, k5, k6]])",
+                    self.dist[i]
+                ),
+            );
+        }
         Ok(())
+    }
+
+    /// The distortion terms the calibration models (`k1, k2, p1, p2[, k3[, k4,
+    /// k5, k6]]`): at most the first [`MODELLED_DIST_TERMS`]; the thin-prism and
+    /// tilt terms of a 12- or 14-entry `dist` are zero ([`Self::validate`]).
+    pub fn modelled_dist(&self) -> &[f64] {
+        &self.dist[..self.dist.len().min(MODELLED_DIST_TERMS)]
     }
 }
 

@@ -37,8 +37,30 @@ impl Row {
     }
 }
 
+/// The most data rows a table may have, and how to say so.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct RowLimit {
+    pub max: usize,
+    /// What a row is, e.g. `pose rows`.
+    pub what: &'static str,
+    /// The constant that sets `max`.
+    pub constant: &'static str,
+    pub advice: &'static str,
+}
+
 /// Parses CSV bytes. `file` is only used in errors.
+#[cfg(test)]
 pub(crate) fn parse_table(bytes: &[u8], file: &Path) -> Result<Table, DatasetError> {
+    parse_table_limited(bytes, file, None)
+}
+
+/// Parses CSV bytes, refusing more data rows than `limit` (reading stops at the
+/// first row beyond it). `file` is only used in errors.
+pub(crate) fn parse_table_limited(
+    bytes: &[u8],
+    file: &Path,
+    limit: Option<RowLimit>,
+) -> Result<Table, DatasetError> {
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(false)
@@ -54,6 +76,17 @@ pub(crate) fn parse_table(bytes: &[u8], file: &Path) -> Result<Table, DatasetErr
         if header.is_none() {
             header = Some((fields, line));
         } else {
+            if let Some(limit) = limit
+                && rows.len() >= limit.max
+            {
+                return Err(DatasetError::TooManyRows {
+                    file: file.to_owned(),
+                    what: limit.what,
+                    limit: limit.max,
+                    constant: limit.constant,
+                    advice: limit.advice,
+                });
+            }
             rows.push(Row {
                 row: rows.len() + 1,
                 line,

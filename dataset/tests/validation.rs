@@ -63,8 +63,8 @@ fn unreadable_dataset_json() {
     let fx = Fixture::new();
     fs::remove_file(fx.path(M)).unwrap();
     fs::create_dir(fx.path(M)).unwrap();
-    let e = fx.load_err(M, &[]);
-    assert!(matches!(e, E::Io { .. }), "{e}");
+    let e = fx.load_err(M, &["is a directory, not a regular file"]);
+    assert!(matches!(e, E::NotARegularFile { .. }), "{e}");
 }
 
 #[test]

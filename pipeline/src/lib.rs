@@ -167,6 +167,31 @@ pub enum PipelineError {
         /// What the method needs, e.g. `needs at least two robots`.
         what: &'static str,
     },
+    /// A robot with fewer usable captures than any fit needs: the robot alone
+    /// is named, with the reasons its captures were rejected, most frequent
+    /// first (the root cause, e.g. every image black or the wrong dictionary).
+    #[error(
+        "robot {robot}: too few captures: {used}, need at least {need}; {rejected} of its {total} \
+         captures rejected{}",
+        if reasons.is_empty() { String::new() } else { format!(": {reasons}") }
+    )]
+    TooFewUsableCaptures {
+        robot: String,
+        used: usize,
+        need: usize,
+        total: usize,
+        rejected: usize,
+        /// The top reasons with their counts, e.g. `12 x no checkerboard found
+        /// (e.g. images/001.png)`.
+        reasons: String,
+    },
+    /// Touches that cannot verify a result (too few, not finite): the touch
+    /// file is at fault, not the result (the caller names the file).
+    #[error("touch points")]
+    Touches {
+        #[source]
+        source: CalibError,
+    },
     /// `verify --pair` for robots the result holds no transform between.
     #[error("the result holds no transform between robots {a} and {b}: {why}")]
     NoPair { a: String, b: String, why: String },
@@ -402,8 +427,13 @@ fn camera_of(ds: &Dataset, robot: &str) -> Result<Option<CameraModel>, PipelineE
     m.camera
         .as_ref()
         .map(|c| {
-            CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist)
-                .map_err(calib(robot))
+            CameraModel::new(
+                c.width,
+                c.height,
+                [c.fx, c.fy, c.cx, c.cy],
+                c.modelled_dist(),
+            )
+            .map_err(calib(robot))
         })
         .transpose()
 }
@@ -938,6 +968,90 @@ pub fn check_image_sizes(
         }
     }
     Ok(())
+}
+
+/// Fewest usable captures of one robot for any fit (hand-eye or base-to-base).
+pub const MIN_USABLE_CAPTURES: usize = 3;
+
+/// How many distinct reasons [`rejection_summary`] lists.
+const TOP_REASONS: usize = 3;
+
+/// The most frequent rejection reasons of `rejected`, with their counts and an
+/// example capture: `12 x no checkerboard found (e.g. row 1, images/001.png);
+/// 2 x ...`. Reasons that differ only in their numbers or in the image's own
+/// path count as one.
+pub fn rejection_summary(rejected: &[RejectedCapture]) -> String {
+    let key = |r: &RejectedCapture| {
+        let mut text = r.reason.clone();
+        if let Some(image) = &r.image {
+            text = text.replace(image.as_str(), "");
+        }
+        let mut out = String::with_capacity(text.len());
+        let mut in_number = false;
+        for c in text.chars() {
+            if c.is_ascii_digit() || (in_number && c == '.') {
+                if !in_number {
+                    out.push('#');
+                }
+                in_number = true;
+            } else {
+                in_number = false;
+                out.push(c);
+            }
+        }
+        out
+    };
+    // At most this many distinct reasons are told apart (the rest are "other").
+    const MAX_GROUPS: usize = 1000;
+    let mut groups: Vec<(String, usize, &RejectedCapture)> = vec![];
+    let mut other = 0;
+    for r in rejected {
+        let k = key(r);
+        if let Some(g) = groups.iter_mut().find(|g| g.0 == k) {
+            g.1 += 1;
+        } else if groups.len() < MAX_GROUPS {
+            groups.push((k, 1, r));
+        } else {
+            other += 1;
+        }
+    }
+    // Most frequent first; ties in the order first seen.
+    groups.sort_by(|a, b| b.1.cmp(&a.1));
+    let mut parts: Vec<String> = groups
+        .iter()
+        .take(TOP_REASONS)
+        .map(|(_, n, r)| {
+            let example = match (r.row, &r.image) {
+                (Some(row), Some(image)) => format!(" (e.g. row {row}, {image})"),
+                (Some(row), None) => format!(" (e.g. row {row})"),
+                (None, Some(image)) => format!(" (e.g. {image})"),
+                (None, None) => String::new(),
+            };
+            format!("{n} x {}{example}", r.reason)
+        })
+        .collect();
+    let rest: usize = other + groups.iter().skip(TOP_REASONS).map(|g| g.1).sum::<usize>();
+    if rest > 0 {
+        parts.push(format!("{rest} for other reasons"));
+    }
+    parts.join("; ")
+}
+
+/// Refuses a robot with fewer than [`MIN_USABLE_CAPTURES`] usable captures,
+/// naming it alone and why its captures were rejected.
+pub fn check_enough_captures(obs: &RobotObservations) -> Result<(), PipelineError> {
+    let used = obs.observations.len();
+    if used >= MIN_USABLE_CAPTURES {
+        return Ok(());
+    }
+    Err(PipelineError::TooFewUsableCaptures {
+        robot: obs.robot.clone(),
+        used,
+        need: MIN_USABLE_CAPTURES,
+        total: used + obs.rejected.len(),
+        rejected: obs.rejected.len(),
+        reasons: rejection_summary(&obs.rejected),
+    })
 }
 
 /// Runs the pre-fit consistency checks ([`b2b_calib::sanity::check_pose_pairs`]) on
@@ -1633,6 +1747,7 @@ fn hand_eye_with(
 ) -> Result<HandEyeRun, PipelineError> {
     let start = Instant::now();
     let (obs, _) = screen_observations(obs, &format!("captures of robot {}", obs.robot))?;
+    check_enough_captures(&obs)?;
     let obs = &obs;
     let robot = obs.robot.as_str();
     let base_from_flange: Vec<Iso3> = obs
@@ -2045,6 +2160,11 @@ pub fn bases_and_cameras_from_observations(
         .iter()
         .map(|o| screen_observations(o, &format!("captures of robot {}", o.robot)).map(|s| s.0))
         .collect::<Result<Vec<_>, _>>()?;
+    // A robot without enough usable captures is named alone, with why, before
+    // the joint problem (which would call it unplaced, or blame every robot).
+    for o in &screened {
+        check_enough_captures(o)?;
+    }
     // The targets no robot saw are left out of the problem (a dataset may list
     // more than one operation uses): the others are numbered densely.
     let mut seen_targets: Vec<usize> = screened
@@ -2455,7 +2575,8 @@ pub fn verify_pair(
         .iter()
         .map(|t| (t.tip1_in_base1, t.tip2_in_base2))
         .collect();
-    let m = verify_touches(&a_from_b, &cov, &pairs, tip_sigma_m).map_err(calib("touch points"))?;
+    let m = verify_touches(&a_from_b, &cov, &pairs, tip_sigma_m)
+        .map_err(|source| PipelineError::Touches { source })?;
     Ok((
         VerifyReport {
             n: m.n,
@@ -2495,20 +2616,20 @@ fn repeated_locations(
     base1_from_base2: &Iso3,
     touches: &[TouchPair],
 ) -> Result<Vec<b2b_protocol::LocationIso9283>, PipelineError> {
-    let mut order: Vec<&str> = vec![];
+    // Grouped in one pass (a file of many locations stays linear).
+    let mut index: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+    let mut groups: Vec<(&str, Vec<&TouchPair>)> = vec![];
     for t in touches {
-        if let Some(l) = t.location.as_deref()
-            && !order.contains(&l)
-        {
-            order.push(l);
+        if let Some(l) = t.location.as_deref() {
+            let k = *index.entry(l).or_insert_with(|| {
+                groups.push((l, vec![]));
+                groups.len() - 1
+            });
+            groups[k].1.push(t);
         }
     }
     let mut out = vec![];
-    for location in order {
-        let group: Vec<&TouchPair> = touches
-            .iter()
-            .filter(|t| t.location.as_deref() == Some(location))
-            .collect();
+    for (location, group) in groups {
         if group.len() < 2 {
             continue;
         }
@@ -2524,8 +2645,8 @@ fn repeated_locations(
             .iter()
             .map(|t| base1_from_base2 * t.tip2_in_base2)
             .collect();
-        let iso =
-            b2b_calib::metrics::iso9283(&commanded, &attained).map_err(calib("touch points"))?;
+        let iso = b2b_calib::metrics::iso9283(&commanded, &attained)
+            .map_err(|source| PipelineError::Touches { source })?;
         out.push(b2b_protocol::LocationIso9283 {
             location: location.to_owned(),
             n: group.len(),
@@ -2601,6 +2722,52 @@ mod tests {
         assert_eq!((iso[0].location.as_str(), iso[0].n), ("A", 4));
         assert!((iso[0].accuracy_mm - 2.0).abs() < 1e-9, "{iso:?}");
         assert!((iso[0].repeatability_mm - 1.0).abs() < 1e-9, "{iso:?}");
+    }
+
+    /// Rejections grouped by reason (numbers and the image's own path aside),
+    /// most frequent first, with counts and an example; the rest counted.
+    #[test]
+    fn rejection_summary_counts_the_top_reasons() {
+        let r = |row: usize, reason: &str| RejectedCapture {
+            robot: "robot2".into(),
+            image: Some(format!("images/{row:03}.png")),
+            row: Some(row),
+            reason: reason.into(),
+        };
+        let mut rejected: Vec<RejectedCapture> = (1..=9)
+            .map(|k| {
+                r(
+                    k,
+                    &format!("/d/robot2/images/{k:03}.png: no checkerboard found"),
+                )
+            })
+            .collect();
+        rejected.push(r(10, "PnP residual 7.2 px"));
+        rejected.push(r(11, "PnP residual 9.8 px"));
+        rejected.push(r(12, "a"));
+        rejected.push(r(13, "b"));
+        let s = rejection_summary(&rejected);
+        assert!(
+            s.starts_with("9 x /d/robot2/images/001.png: no checkerboard found (e.g. row 1, images/001.png); 2 x PnP residual 7.2 px (e.g. row 10"),
+            "{s}"
+        );
+        assert!(
+            s.ends_with("; 1 x a (e.g. row 12, images/012.png); 1 for other reasons"),
+            "{s}"
+        );
+        let obs = RobotObservations {
+            robot: "robot2".into(),
+            camera: CameraModel::new(640, 480, [600.0, 600.0, 320.0, 240.0], &[]).unwrap(),
+            observations: vec![],
+            rejected,
+            detect_ms: 0.0,
+            estimated_intrinsics: None,
+        };
+        let e = check_enough_captures(&obs).unwrap_err().to_string();
+        assert!(
+            e.starts_with("robot robot2: too few captures: 0, need at least 3; 13 of its 13 captures rejected: 9 x "),
+            "{e}"
+        );
     }
 
     /// The review's example: "too few captures: 0, need at least 3" was printed twice,

@@ -195,11 +195,14 @@ pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> anyhow::Result
             .with_context(|| format!("cannot create {}", parent.display()))?;
     }
     let text = serde_json::to_string_pretty(value)?;
-    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+    outputs::write_together(&[(path.to_owned(), (text + "\n").into_bytes())])
 }
 
 /// Reads a JSON file into a value, naming the file in errors.
+/// A named pipe, a device or a directory is refused without opening it (a pipe
+/// would block), and so is a file over `b2b_dataset::MAX_TEXT_FILE_BYTES`.
 pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<T> {
+    b2b_dataset::check_input_file(path, "expected a JSON file")?;
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     serde_json::from_str(&text)
@@ -215,18 +218,18 @@ pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<
 #[derive(Debug, Clone, Copy, clap::Args)]
 pub struct RobotNoiseArgs {
     /// Flange translation error per capture for the first fit, 1 sigma (mm).
-    #[arg(long, default_value_t = 0.05, value_parser = non_negative)]
+    #[arg(long, default_value_t = 0.05, value_parser = non_negative, allow_negative_numbers = true)]
     pub robot_sigma_mm: f64,
     /// Flange rotation error per capture, 1 sigma (degrees).
-    #[arg(long, default_value_t = 0.01, value_parser = non_negative)]
+    #[arg(long, default_value_t = 0.01, value_parser = non_negative, allow_negative_numbers = true)]
     pub robot_sigma_deg: f64,
     /// The arm's systematic (absolute) pose error, 1 sigma (mm): kinematic
     /// errors that do not show in the residuals. Added to the result's
     /// covariance as an error common to all captures. 0: none.
-    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
     pub robot_accuracy_mm: f64,
     /// The arm's systematic orientation error, 1 sigma (degrees).
-    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
     pub robot_accuracy_deg: f64,
 }
 
@@ -290,6 +293,22 @@ pub fn non_negative(text: &str) -> Result<f64, String> {
         Ok(_) => Err(format!("{text} is not a number >= 0")),
         Err(e) => Err(format!("{text}: {e}")),
     }
+}
+
+/// clap's parser of a whole number `>= 0` (counts, milliseconds); with
+/// `allow_negative_numbers` on the flag, `-1` reaches it and is refused naming
+/// the flag, not taken for another flag.
+pub fn whole_number(text: &str) -> Result<u64, String> {
+    match text.parse::<i128>() {
+        Ok(v) if v < 0 => Err(format!("{text} is not a whole number >= 0")),
+        Ok(v) => u64::try_from(v).map_err(|_| format!("{text} is too large")),
+        Err(_) => Err(format!("{text} is not a whole number >= 0")),
+    }
+}
+
+/// [`whole_number`] as a `usize`.
+pub fn whole_count(text: &str) -> Result<usize, String> {
+    whole_number(text).and_then(|v| usize::try_from(v).map_err(|_| format!("{text} is too large")))
 }
 
 /// clap's parser of a number that must be finite and `> 0` (rates, durations).

@@ -198,10 +198,10 @@ pub struct LiveArgs {
     #[arg(long, default_value = "b2b/camera")]
     pub camera_prefix: String,
     /// Viewpoints to plan.
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = 30, value_parser = crate::whole_count, allow_negative_numbers = true)]
     pub count: usize,
     /// Seed of the simulated cart (its robot errors and sensor noise).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = crate::whole_number, allow_negative_numbers = true)]
     pub seed: u64,
     /// Simulated cart only: a folder the cart watches for commands (a bump of
     /// its base: `b2b-sim-cart bump --control DIR --robot ID --t-mm x,y,z`).

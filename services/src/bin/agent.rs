@@ -10,14 +10,19 @@ use std::time::Duration;
 
 use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
-use b2b_pipeline::{HandEyeChoice, RobotCamera, hand_eye, load_dataset, observe_robot};
+use b2b_pipeline::{HandEyeChoice, RobotCamera, hand_eye, observe_robot};
 use b2b_routine::{Mode, RoutineConfig};
 use b2b_services::agent::{AgentOptions, BusArgs, run_agent, run_replay, run_watch};
 use b2b_services::live::WatchObserve;
-use b2b_services::outputs::{print_agent_result, print_hand_eye, print_plan};
+use b2b_services::outputs::{
+    check_destinations, print_agent_result, print_hand_eye, print_plan, refuse_output_over_input,
+};
 use b2b_services::recording::{RerunArgs, finish_recording, log_hand_eye_run};
 use b2b_services::setup::{Cart, LiveArgs, connect};
-use b2b_services::{RobotNoiseArgs, init_logging, positive, run_main, stop_flag, write_json};
+use b2b_services::{
+    RobotNoiseArgs, init_logging, positive, run_main, stop_flag, whole_count, whole_number,
+    write_json,
+};
 use b2b_vision::features::FeatureKind;
 use clap::{Parser, Subcommand};
 
@@ -50,7 +55,7 @@ enum Command {
         #[command(flatten)]
         live: LiveArgs,
         /// Milliseconds between replayed captures.
-        #[arg(long, default_value_t = 0)]
+        #[arg(long, default_value_t = 0, value_parser = whole_number, allow_negative_numbers = true)]
         pace_ms: u64,
         /// Local features for the coordinator's RGB-D method, lifted with each
         /// capture's depth image and published with it: sift, akaze, orb or none
@@ -79,17 +84,17 @@ enum Command {
         #[arg(long)]
         dry_run: bool,
         /// Stop when the hand-eye's 1-sigma translation is below this (mm) ...
-        #[arg(long, default_value_t = 0.1)]
+        #[arg(long, default_value_t = 0.1, value_parser = positive, allow_negative_numbers = true)]
         stop_sigma_mm: f64,
         /// ... and its 1-sigma rotation below this (deg) ...
-        #[arg(long, default_value_t = 0.01)]
+        #[arg(long, default_value_t = 0.01, value_parser = positive, allow_negative_numbers = true)]
         stop_sigma_deg: f64,
         /// ... with at least this many good captures.
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, default_value_t = 20, value_parser = whole_count, allow_negative_numbers = true)]
         min_good: usize,
         /// After the coordinator's result, stay and watch for drift (as `agent
         /// watch`) at this rate until Ctrl-C.
-        #[arg(long, value_parser = positive)]
+        #[arg(long, value_parser = positive, allow_negative_numbers = true)]
         watch_hz: Option<f64>,
         /// What that watch observes, as `agent watch --observe`. The
         /// routine's own captures carry no features.
@@ -119,10 +124,10 @@ enum Command {
         #[arg(long)]
         fri: Option<String>,
         /// Observations per second.
-        #[arg(long, default_value_t = 5.0, value_parser = positive)]
+        #[arg(long, default_value_t = 5.0, value_parser = positive, allow_negative_numbers = true)]
         hz: f64,
         /// Stop after this many seconds (default: until Ctrl-C).
-        #[arg(long, value_parser = positive)]
+        #[arg(long, value_parser = positive, allow_negative_numbers = true)]
         duration_s: Option<f64>,
         /// What to observe: `target`; `features` (the scene's local features
         /// lifted with the depth frame, for where no target is left in view);
@@ -366,10 +371,14 @@ fn main() -> std::process::ExitCode {
             noise,
             rerun,
         } => {
+            refuse_output_over_input("--out", &out, Some(&dataset), &[])?;
+            check_destinations(&[&out])?;
             let recorder = rerun.recorder(&format!("b2b-handeye-{robot}"))?;
             let choice: HandEyeChoice = method.parse().map_err(anyhow::Error::msg)?;
             b2b_services::show_pipeline_progress();
-            let ds = load_dataset(&dataset)?;
+            // One robot's hand-eye uses no touches: a touch file (even one a
+            // one-robot dataset should not have) is not its business.
+            let ds = b2b_dataset::Dataset::load_without_touches(&dataset)?;
             let obs = observe_robot(&ds, &robot)?;
             let options = RefineOptions {
                 refine_intrinsics,

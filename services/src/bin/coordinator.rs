@@ -12,7 +12,8 @@ use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, pair_transform, ve
 use b2b_protocol::CalibrationResult;
 use b2b_services::history;
 use b2b_services::outputs::{
-    add_history, print_result, print_verification, report_inputs, write_result,
+    add_history, check_destinations, print_result, print_verification, refuse_output_over_input,
+    report_inputs, result_paths, write_result,
 };
 use b2b_services::recording::{
     RerunArgs, finish_recording, log_offline_calibration, log_result, log_verification,
@@ -119,7 +120,7 @@ enum Command {
         #[arg(long)]
         json: Option<PathBuf>,
         /// Each pointer tip's noise (1 sigma, mm), added to the predicted bounds.
-        #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+        #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
         tip_sigma_mm: f64,
         /// The two robots the touch file pairs, `a,b` (columns 1-3 in a's base,
         /// 4-6 in b's), for a result of more than two robots; default: the
@@ -176,7 +177,7 @@ enum Command {
         #[arg(long = "touch-points")]
         touch_points: Option<PathBuf>,
         /// Each pointer tip's noise (1 sigma, mm), for the per-touch bounds.
-        #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
+        #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
         tip_sigma_mm: f64,
         /// Output folder (index.html and the plots).
         #[arg(long)]
@@ -203,11 +204,11 @@ enum Command {
         #[arg(long)]
         until_alarm: bool,
         /// Stop after this many seconds (default: until Ctrl-C).
-        #[arg(long, value_parser = b2b_services::positive)]
+        #[arg(long, value_parser = b2b_services::positive, allow_negative_numbers = true)]
         duration_s: Option<f64>,
         /// Pair an observation with the reference robot's latest one only if
         /// that one is at most this old (s).
-        #[arg(long, default_value_t = 2.0, value_parser = b2b_services::positive)]
+        #[arg(long, default_value_t = 2.0, value_parser = b2b_services::positive, allow_negative_numbers = true)]
         max_age_s: f64,
         /// Where the alarms' sequence number is kept.
         #[arg(long, default_value = "coordinator-state")]
@@ -295,6 +296,14 @@ fn print_issued(issued: &b2b_services::pki::Issued, dir: &std::path::Path) {
     );
 }
 
+/// Refuses, before any work, a RESULT.json or sibling path that a file cannot
+/// replace (a directory in the way).
+fn check_result_destinations(out: &std::path::Path) -> anyhow::Result<()> {
+    let paths = result_paths(out);
+    let refs: Vec<&std::path::Path> = paths.iter().map(PathBuf::as_path).collect();
+    check_destinations(&refs)
+}
+
 /// `--refine-intrinsics` is for the methods that fit the cameras.
 fn check_refine_intrinsics(refine_intrinsics: bool, method: B2bMethod) -> anyhow::Result<()> {
     anyhow::ensure!(
@@ -318,6 +327,7 @@ fn main() -> std::process::ExitCode {
             noise,
             rerun,
         } => {
+            check_result_destinations(&out)?;
             let recorder = rerun.recorder("b2b-coordinator")?;
             let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
             check_refine_intrinsics(refine_intrinsics, method)?;
@@ -360,6 +370,9 @@ fn main() -> std::process::ExitCode {
             noise,
             rerun,
         } => {
+            let inputs: Vec<&std::path::Path> = hand_eye.iter().map(PathBuf::as_path).collect();
+            refuse_output_over_input("--out", &out, Some(&dataset), &inputs)?;
+            check_result_destinations(&out)?;
             let recorder = rerun.recorder("b2b-coordinator")?;
             b2b_services::show_pipeline_progress();
             let ds = load_dataset(&dataset)?;
@@ -423,13 +436,24 @@ fn main() -> std::process::ExitCode {
             pair,
             rerun,
         } => {
+            if let Some(path) = &json {
+                refuse_output_over_input("--json", path, None, &[&result, &touch_points])?;
+                check_destinations(&[path])?;
+            }
             let recorder = rerun.recorder("b2b-verify")?;
             let r: CalibrationResult = read_json(&result)?;
             r.validate().with_context(|| result.display().to_string())?;
             let touches = b2b_dataset::read_touch_points(&touch_points)?;
             let pair = pair.as_ref().map(|(a, b)| (a.as_str(), b.as_str()));
-            let (report, m) = verify_pair(&r, pair, &touches, tip_sigma_mm * 1e-3)
-                .with_context(|| result.display().to_string())?;
+            // The file at fault: the touches' problems are the touch file's.
+            let (report, m) =
+                verify_pair(&r, pair, &touches, tip_sigma_mm * 1e-3).map_err(|e| {
+                    let file = match e {
+                        b2b_pipeline::PipelineError::Touches { .. } => &touch_points,
+                        _ => &result,
+                    };
+                    anyhow::Error::new(e).context(file.display().to_string())
+                })?;
             if let Some((a, b)) = pair {
                 println!(
                     "robot {b}'s base in robot {a}'s, against {}",
