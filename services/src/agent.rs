@@ -418,8 +418,8 @@ pub fn run_agent_on(
         Answer::None => match link.status.session()? {
             Some(_) => Ok(None),
             None => Err(anyhow::anyhow!(
-                "no coordinator heard within {} s (a running one announces its session twice \
-                 a second): {}",
+                "no result from the coordinator within {} s, and no coordinator heard (a \
+                 running one announces its session twice a second): {}",
                 opts.wait_result.as_secs(),
                 link.status.bus.unreached().unwrap_or_else(|| {
                     "connected, but no session announced: is the coordinator running (or \

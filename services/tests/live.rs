@@ -319,8 +319,9 @@ fn a_port_already_taken_is_named_by_the_coordinator_and_the_agents() {
     assert!(!status.success(), "{err}");
     let last = err.lines().last().unwrap_or_default();
     assert!(
-        last.starts_with("error: no coordinator heard within 8 s")
-            && last.contains(&format!("tcp/127.0.0.1:{port} accepts connections"))
+        last.starts_with(
+            "error: no result from the coordinator within 8 s, and no coordinator heard"
+        ) && last.contains(&format!("tcp/127.0.0.1:{port} accepts connections"))
             && last.contains("is another coordinator running?"),
         "{err}"
     );
