@@ -15,7 +15,14 @@
 //! | `b2b/agent/{robot}/status` | [`AgentStatus`] | agent, on every change |
 //! | `b2b/agent/{robot}/history` | queryable: every capture so far, for a (re)started coordinator | agent |
 //! | `b2b/coordinator/result` | [`crate::CalibrationResult`], sender [`COORDINATOR`] | coordinator |
+//! | `b2b/coordinator/failure` | [`RunFailure`]: the run's solve failed, and why | coordinator |
+//! | `b2b/coordinator/session` | [`SessionAnnouncement`] | coordinator, twice a second |
 //! | `b2b/coordinator/alive` | liveliness token | coordinator |
+//!
+//! Every message of an agent carries the session it heard announced; the
+//! coordinator uses only captures, hand-eyes and statuses of its own session,
+//! so an earlier run's messages replayed into a new run are dropped (signed
+//! ones cannot be re-stamped: the session is inside what is signed).
 
 use serde::{Deserialize, Serialize};
 
@@ -48,6 +55,11 @@ pub fn result_key() -> String {
 /// The key the coordinator's drift watch raises alarms on.
 pub fn alarm_key() -> String {
     format!("{KEY_ROOT}/coordinator/alarm")
+}
+
+/// The key the coordinator publishes a failed solve on ([`RunFailure`]).
+pub fn failure_key() -> String {
+    format!("{KEY_ROOT}/coordinator/failure")
 }
 
 /// The coordinator's liveliness token.
@@ -94,6 +106,40 @@ pub struct SessionAnnouncement {
 impl Validate for SessionAnnouncement {
     fn validate(&self) -> Result<(), ProtocolError> {
         validate_session_id(&self.session)
+    }
+}
+
+/// The longest [`RunFailure::reason`], in bytes.
+pub const FAILURE_REASON_MAX: usize = 4096;
+
+/// A run's solve failed (`b2b/coordinator/failure`, in the run's session):
+/// the agents waiting for its result stop waiting and say why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunFailure {
+    /// What failed, one line for an operator.
+    pub reason: String,
+}
+
+impl Validate for RunFailure {
+    fn validate(&self) -> Result<(), ProtocolError> {
+        let bad = |reason: String| ProtocolError::BadField {
+            field: "reason".into(),
+            reason,
+        };
+        if self.reason.trim().is_empty() {
+            return Err(bad("empty".into()));
+        }
+        if self.reason.len() > FAILURE_REASON_MAX {
+            return Err(bad(format!(
+                "{} bytes, at most {FAILURE_REASON_MAX}",
+                self.reason.len()
+            )));
+        }
+        // Printed on the agents' terminals: no escape sequences.
+        if let Some(c) = self.reason.chars().find(|c| c.is_control() && *c != '\n') {
+            return Err(bad(format!("holds the control character {c:?}")));
+        }
+        Ok(())
     }
 }
 
@@ -665,6 +711,24 @@ mod tests {
         let mut f = features();
         f.pixels[1][0] = f64::INFINITY;
         check(f, "features.pixels");
+    }
+
+    #[test]
+    fn a_run_failure_is_one_bounded_printable_reason() {
+        let ok = RunFailure {
+            reason: "need two robots, heard from 1".into(),
+        };
+        Envelope::new(COORDINATOR, 1, ok.clone())
+            .validate(COORDINATOR)
+            .unwrap();
+        for (reason, what) in [
+            ("  ".to_owned(), "empty"),
+            ("x".repeat(FAILURE_REASON_MAX + 1), "at most 4096"),
+            ("red \u{1b}[31m".to_owned(), "control character"),
+        ] {
+            let e = RunFailure { reason }.validate().unwrap_err().to_string();
+            assert!(e.contains(what) && e.contains("reason"), "{e}");
+        }
     }
 
     #[test]

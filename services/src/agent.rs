@@ -26,7 +26,7 @@ use b2b_pipeline::{
 };
 use b2b_protocol::messages::{
     AgentState, AgentStatus, BoardObservation, Capture, Envelope, FeatureSet, HandEyeUpdate,
-    Intrinsics, SessionAnnouncement, agent_key, result_key, session_key,
+    Intrinsics, RunFailure, SessionAnnouncement, agent_key, failure_key, result_key, session_key,
 };
 use b2b_protocol::{CalibrationResult, Pose};
 
@@ -355,6 +355,7 @@ pub fn run_agent_on(
     b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let link = AgentLink::open(bus, &opts.robot, &opts.state_dir, source.describe())?;
     let results = link.status.bus.subscribe(&result_key())?;
+    let failures = link.status.bus.subscribe(&failure_key())?;
     let bar = progress_bar(opts.progress, source.expected(), &opts.robot);
     let mut captures = CaptureLoop::default();
     let run = captures.run(&link, opts, source, stop, &bar);
@@ -401,12 +402,33 @@ pub fn run_agent_on(
     link.status.publish()?;
     run?;
     // Stay reachable (history, heartbeat) until the coordinator answers.
-    Ok(wait_for_result(
-        &*results,
+    let answer = wait_for_result(
+        Answers {
+            results: &*results,
+            failures: &*failures,
+        },
         &link.status,
         opts.wait_result,
         stop,
-    ))
+    );
+    match answer {
+        Answer::Result(r) => Ok(Some(*r)),
+        Answer::Failed(reason) => Err(anyhow::anyhow!("the coordinator's solve failed: {reason}")),
+        Answer::None if stop.load(Ordering::SeqCst) => Ok(None),
+        Answer::None => match link.status.session()? {
+            Some(_) => Ok(None),
+            None => Err(anyhow::anyhow!(
+                "no result from the coordinator within {} s, and no coordinator heard (a \
+                 running one announces its session twice a second): {}",
+                opts.wait_result.as_secs(),
+                link.status.bus.unreached().unwrap_or_else(|| {
+                    "connected, but no session announced: is the coordinator running (or \
+                     another program in its place: is another coordinator running?)"
+                        .into()
+                })
+            )),
+        },
+    }
 }
 
 /// The status message of one agent, published on every change and as a heartbeat.
@@ -470,6 +492,26 @@ impl StatusLink {
             .clone())
     }
 
+    /// Whether an answer of the coordinator in `theirs` is for this agent:
+    /// of the session it echoes (taking an announcement that arrived since
+    /// the last heartbeat first). Logs the ones it is not.
+    fn ours(&self, theirs: Option<&str>, what: &str) -> bool {
+        self.hear_session();
+        let echoed = self.session().ok().flatten();
+        if theirs.is_some() && theirs == echoed.as_deref() {
+            return true;
+        }
+        tracing::warn!(
+            "{}: ignored a {what} of session {} (this agent echoes {})",
+            self.robot,
+            theirs.unwrap_or("none"),
+            echoed
+                .as_deref()
+                .unwrap_or("none: no coordinator session heard")
+        );
+        false
+    }
+
     /// Takes the coordinator's newest session announcement, if one arrived.
     fn hear_session(&self) {
         let Ok(inbox) = self.sessions.lock() else {
@@ -510,7 +552,10 @@ impl StatusLink {
 /// Dropping it stops the heartbeat.
 struct AgentLink {
     status: StatusLink,
-    history: Arc<Mutex<Vec<Vec<u8>>>>,
+    /// Every capture published, served in the session echoed at the time
+    /// of the query (one sent before the coordinator's session was heard
+    /// then carries it too).
+    history: Arc<Mutex<Vec<Envelope<Capture>>>>,
     _queryable: bus::Declaration,
     done: Arc<AtomicBool>,
     heartbeat: Option<std::thread::JoinHandle<()>>,
@@ -527,18 +572,36 @@ impl AgentLink {
         describe: String,
     ) -> anyhow::Result<AgentLink> {
         let seq = Arc::new(Sequence::open(state_dir, robot)?);
-        let history: Arc<Mutex<Vec<Vec<u8>>>> = Arc::new(Mutex::new(Vec::new()));
+        let history: Arc<Mutex<Vec<Envelope<Capture>>>> = Arc::new(Mutex::new(Vec::new()));
+        let session: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
         let served = Arc::clone(&history);
+        let now = Arc::clone(&session);
+        let key = agent_key(robot, "history");
+        let reply_key = key.clone();
         let queryable = bus.serve(
-            &agent_key(robot, "history"),
-            Arc::new(move || served.lock().map(|h| h.clone()).unwrap_or_default()),
+            &key,
+            Arc::new(move || {
+                let session = now.lock().map(|s| s.clone()).unwrap_or_default();
+                let Ok(history) = served.lock() else {
+                    return Vec::new();
+                };
+                history
+                    .iter()
+                    .filter_map(|e| {
+                        let e = e.clone().in_session(session.as_deref());
+                        bus::encode(&reply_key, &e)
+                            .map_err(|err| tracing::warn!("{err}"))
+                            .ok()
+                    })
+                    .collect()
+            }),
         )?;
         let sessions = bus.subscribe(&session_key())?;
         let status = StatusLink {
             bus,
             robot: robot.to_owned(),
             seq,
-            session: Arc::new(Mutex::new(None)),
+            session,
             sessions: Arc::new(Mutex::new(sessions)),
             status: Arc::new(Mutex::new(AgentStatus {
                 state: AgentState::Starting,
@@ -576,11 +639,12 @@ impl AgentLink {
     /// Publishes a capture and keeps it for the history queryable.
     fn publish_capture(&self, msg: Capture) -> anyhow::Result<()> {
         let key = agent_key(&self.status.robot, "capture");
-        let bytes = bus::encode(&key, &self.status.envelope(msg)?)?;
+        let envelope = self.status.envelope(msg)?;
+        let bytes = bus::encode(&key, &envelope)?;
         self.history
             .lock()
             .map_err(|_| anyhow::anyhow!("history lock poisoned"))?
-            .push(bytes.clone());
+            .push(envelope);
         self.status.bus.put(&key, bytes)?;
         Ok(())
     }
@@ -875,34 +939,61 @@ fn record(opts: &AgentOptions, cap: &SourceCapture, msg: &Capture) {
     }
 }
 
-/// The coordinator's result, validated and of the session this agent echoes,
-/// or `None` when `wait` passed (or `stop` was set) without one. Invalid result
-/// messages, and results of another session or of none, are logged and ignored.
+/// The coordinator's answers to a run: its result, or the reason its solve
+/// failed.
+#[derive(Clone, Copy)]
+struct Answers<'a> {
+    results: &'a dyn bus::Inbox,
+    failures: &'a dyn bus::Inbox,
+}
+
+/// What the coordinator answered.
+#[derive(Debug, Clone, PartialEq)]
+enum Answer {
+    Result(Box<CalibrationResult>),
+    /// The run's solve failed, for this reason.
+    Failed(String),
+    /// Nothing within the wait (or stopped).
+    None,
+}
+
+/// How long an agent waits for a coordinator's session before it says it
+/// hears none (and what its endpoints answer), once.
+pub const NO_COORDINATOR_WARNING: Duration = Duration::from_secs(5);
+
+/// The coordinator's result or failure, validated and of the session this
+/// agent echoes, or [`Answer::None`] when `wait` passed (or `stop` was set)
+/// without one. Invalid messages, and answers of another session or of none,
+/// are logged and ignored. With no session heard after
+/// [`NO_COORDINATOR_WARNING`], says so once, with why.
 fn wait_for_result(
-    results: &dyn bus::Inbox,
+    answers: Answers<'_>,
     link: &StatusLink,
     wait: Duration,
     stop: &AtomicBool,
-) -> Option<CalibrationResult> {
-    let deadline = Instant::now() + wait;
+) -> Answer {
+    let started = Instant::now();
+    let deadline = started + wait;
+    let mut warned = false;
     while Instant::now() < deadline && !stop.load(Ordering::SeqCst) {
-        match results.recv_timeout(Duration::from_millis(200)) {
+        if !warned && started.elapsed() >= NO_COORDINATOR_WARNING {
+            warned = true;
+            link.hear_session();
+            if link.session().ok().flatten().is_none() {
+                eprintln!(
+                    "{}: no coordinator heard yet: {}",
+                    link.robot,
+                    link.bus
+                        .unreached()
+                        .unwrap_or_else(|| "connected, but no session announced".into())
+                );
+            }
+        }
+        match answers.results.recv_timeout(Duration::from_millis(100)) {
             Ok(Some(m)) => match bus::decode::<CalibrationResult>(&m.key, &m.payload) {
                 Ok(envelope) => {
-                    // An announcement that arrived since the last heartbeat.
-                    link.hear_session();
-                    let echoed = link.session().ok().flatten();
-                    match (&envelope.session, &echoed) {
-                        (Some(theirs), Some(ours)) if theirs == ours => {
-                            return Some(envelope.body);
-                        }
-                        (theirs, ours) => tracing::warn!(
-                            "{}: ignored a result of session {} (this agent echoes {})",
-                            link.robot,
-                            theirs.as_deref().unwrap_or("none"),
-                            ours.as_deref()
-                                .unwrap_or("none: no coordinator session heard")
-                        ),
+                    if link.ours(envelope.session.as_deref(), "result") {
+                        return Answer::Result(Box::new(envelope.body));
                     }
                 }
                 Err(reason) => {
@@ -912,11 +1003,28 @@ fn wait_for_result(
             Ok(None) => {}
             Err(e) => {
                 tracing::warn!("{e}");
-                return None;
+                return Answer::None;
+            }
+        }
+        match answers.failures.recv_timeout(Duration::from_millis(100)) {
+            Ok(Some(m)) => match bus::decode::<RunFailure>(&m.key, &m.payload) {
+                Ok(envelope) => {
+                    if link.ours(envelope.session.as_deref(), "failure") {
+                        return Answer::Failed(envelope.body.reason);
+                    }
+                }
+                Err(reason) => {
+                    crate::warn_limited(&m.key, &format!("ignored a failure message: {reason}"))
+                }
+            },
+            Ok(None) => {}
+            Err(e) => {
+                tracing::warn!("{e}");
+                return Answer::None;
             }
         }
     }
-    None
+    Answer::None
 }
 
 #[cfg(test)]
@@ -934,6 +1042,11 @@ mod tests {
         let bus = Arc::new(bus::MemoryBus::new());
         let mine = bus.subscribe(&agent_key("robot1", "**")).unwrap();
         let results = bus.subscribe(&result_key()).unwrap();
+        let failures = bus.subscribe(&failure_key()).unwrap();
+        let answers = Answers {
+            results: &*results,
+            failures: &*failures,
+        };
         let link = AgentLink::open(bus.clone(), "robot1", dir.path(), "test".into()).unwrap();
         let result: CalibrationResult =
             serde_json::from_str(include_str!("../../report/tests/fixtures/RESULT.json")).unwrap();
@@ -949,7 +1062,10 @@ mod tests {
         let wait = Duration::from_millis(300);
         // Nothing heard yet: even a well-formed result is not this agent's.
         put_result(Some(ours), 1.0);
-        assert!(wait_for_result(&*results, &link.status, wait, &stop).is_none());
+        assert_eq!(
+            wait_for_result(answers, &link.status, wait, &stop),
+            Answer::None
+        );
         let announce = Envelope::new(
             COORDINATOR,
             2,
@@ -961,7 +1077,11 @@ mod tests {
         put_result(None, 2.0);
         put_result(Some(theirs), 3.0);
         put_result(Some(ours), 4.0);
-        let got = wait_for_result(&*results, &link.status, Duration::from_secs(2), &stop).unwrap();
+        let Answer::Result(got) =
+            wait_for_result(answers, &link.status, Duration::from_secs(2), &stop)
+        else {
+            panic!("no result taken");
+        };
         assert_eq!(got.base1_from_base2.t[0], 4.0);
         // The agent's own messages echo the session now.
         link.status.publish().unwrap();
@@ -971,6 +1091,50 @@ mod tests {
             echoed = e.session;
         }
         assert_eq!(echoed.as_deref(), Some(ours));
+    }
+
+    /// A failed solve of the echoed session ends the wait with its reason;
+    /// one of another session, or a forged one with control characters, is
+    /// ignored.
+    #[test]
+    fn a_failure_of_the_echoed_session_ends_the_wait_with_its_reason() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = Arc::new(bus::MemoryBus::new());
+        let results = bus.subscribe(&result_key()).unwrap();
+        let failures = bus.subscribe(&failure_key()).unwrap();
+        let answers = Answers {
+            results: &*results,
+            failures: &*failures,
+        };
+        let link = AgentLink::open(bus.clone(), "robot1", dir.path(), "test".into()).unwrap();
+        let ours = "0123456789abcdef0123456789abcdef";
+        let announce = Envelope::new(
+            COORDINATOR,
+            1,
+            SessionAnnouncement {
+                session: ours.into(),
+            },
+        );
+        bus::publish(&*bus, &session_key(), &announce).unwrap();
+        let fail = |session: &str, reason: &str| {
+            let e = Envelope::new(
+                COORDINATOR,
+                2,
+                RunFailure {
+                    reason: reason.into(),
+                },
+            )
+            .in_session(Some(session));
+            bus::publish(&*bus, &failure_key(), &e).unwrap();
+        };
+        fail("fedcba9876543210fedcba9876543210", "not yours");
+        fail(ours, "escape \u{1b}[2J");
+        fail(ours, "need two robots, heard from 1");
+        let stop = AtomicBool::new(false);
+        assert_eq!(
+            wait_for_result(answers, &link.status, Duration::from_secs(5), &stop),
+            Answer::Failed("need two robots, heard from 1".into())
+        );
     }
 
     #[test]

@@ -21,7 +21,12 @@
 //! On an open bus, the coordinator's journal is the defence: a capture that
 //! contradicts one held is a conflict and used by neither version
 //! ([`crate::store::Arrival`]), and a status neither stalls nor completes a run
-//! beyond the captures that arrived.
+//! beyond the captures that arrived and the agent's history holds. On either,
+//! a message of another run's session is dropped ([`crate::coordinator`]).
+//!
+//! A port another process listens on is named as such ([`BusError::PortInUse`])
+//! before zenoh tries it; a side that hears nobody can ask
+//! [`Bus::unreached`] why.
 //!
 //! Payloads are JSON [`Envelope`]s, results included. [`encode`] refuses what
 //! does not serialise instead of sending an empty payload; [`decode`] checks
@@ -63,6 +68,9 @@ pub enum BusError {
     Query { key: String, reason: String },
     #[error("cannot declare {key}: {reason}")]
     Declare { key: String, reason: String },
+    /// Another process listens where this session must.
+    #[error("port {port} already in use: is another {who} running?")]
+    PortInUse { port: u16, who: &'static str },
 }
 
 /// One message as it arrived: its key and its bytes.
@@ -103,6 +111,12 @@ pub trait Bus: Send + Sync {
     fn serve(&self, key: &str, replies: Replies) -> Result<Declaration, BusError>;
     /// Declares a liveliness token on `key`, gone when dropped.
     fn announce(&self, key: &str) -> Result<Declaration, BusError>;
+    /// Why nobody may be hearing this side (no peer connected, and what the
+    /// endpoints it connects to answer), or `None` when it has a peer or
+    /// cannot tell. Asked when no coordinator has been heard.
+    fn unreached(&self) -> Option<String> {
+        None
+    }
 }
 
 /// Which side opens the session (decides the default endpoints).
@@ -164,25 +178,75 @@ pub fn unauthenticated(file: Option<&Path>, config: &zenoh::Config) -> Option<St
         );
     }
     for side in ["listen", "connect"] {
-        // A list, or lists by mode ({"peer": [...], "router": [...]}).
-        let value: serde_json::Value =
-            serde_json::from_str(&get(&format!("{side}/endpoints"))).unwrap_or_default();
-        let lists: Vec<&serde_json::Value> = match &value {
-            serde_json::Value::Object(by_mode) => by_mode.values().collect(),
-            other => vec![other],
-        };
-        let endpoints = lists
-            .into_iter()
-            .filter_map(serde_json::Value::as_array)
-            .flatten()
-            .filter_map(serde_json::Value::as_str);
-        for e in endpoints {
+        for e in endpoints(config, side) {
             if !e.starts_with("tls/") {
                 return Some(format!("{side} endpoint {e} is not TLS"));
             }
         }
     }
     None
+}
+
+/// The `side` (`listen` or `connect`) endpoints of a configuration: a list,
+/// or lists by mode (`{"peer": [...], "router": [...]}`).
+fn endpoints(config: &zenoh::Config, side: &str) -> Vec<String> {
+    let value: serde_json::Value = config
+        .get_json(&format!("{side}/endpoints"))
+        .ok()
+        .and_then(|text| serde_json::from_str(&text).ok())
+        .unwrap_or_default();
+    let lists: Vec<&serde_json::Value> = match &value {
+        serde_json::Value::Object(by_mode) => by_mode.values().collect(),
+        other => vec![other],
+    };
+    lists
+        .into_iter()
+        .filter_map(serde_json::Value::as_array)
+        .flatten()
+        .filter_map(serde_json::Value::as_str)
+        .map(str::to_owned)
+        .collect()
+}
+
+/// The socket address of a `tcp/` or `tls/` endpoint with a fixed port
+/// (`tcp/127.0.0.1:7447`, `tls/[::1]:7447#...`); `None` for other
+/// transports, port 0 and names that do not resolve.
+pub fn endpoint_addr(endpoint: &str) -> Option<std::net::SocketAddr> {
+    use std::net::ToSocketAddrs;
+    let (proto, rest) = endpoint.split_once('/')?;
+    if proto != "tcp" && proto != "tls" {
+        return None;
+    }
+    let address = rest.split(['#', '?']).next()?;
+    let addr = address.to_socket_addrs().ok()?.next()?;
+    (addr.port() != 0).then_some(addr)
+}
+
+/// Refuses to open a session whose fixed TCP/TLS listening port another
+/// process holds, saying so in one line (zenoh's own error names its source
+/// files, not the port).
+fn check_listen_ports(config: &zenoh::Config, role: Role) -> Result<(), BusError> {
+    for addr in endpoints(config, "listen")
+        .iter()
+        .filter_map(|e| endpoint_addr(e))
+    {
+        if let Err(e) = std::net::TcpListener::bind(addr)
+            && e.kind() == std::io::ErrorKind::AddrInUse
+        {
+            return Err(port_in_use(addr.port(), role));
+        }
+    }
+    Ok(())
+}
+
+fn port_in_use(port: u16, role: Role) -> BusError {
+    BusError::PortInUse {
+        port,
+        who: match role {
+            Role::Coordinator => "coordinator",
+            Role::Agent => "agent",
+        },
+    }
 }
 
 /// Opens a zenoh session.
@@ -198,6 +262,8 @@ pub fn open(config: zenoh::Config) -> Result<zenoh::Session, BusError> {
 pub struct ZenohBus {
     session: zenoh::Session,
     signing: Option<Arc<Signing>>,
+    /// The endpoints it connects to (for [`Bus::unreached`]).
+    connect: Vec<String>,
 }
 
 impl ZenohBus {
@@ -218,9 +284,23 @@ impl ZenohBus {
             }
             (None, None) => None,
         };
+        check_listen_ports(&config, role)?;
+        let connect: Vec<String> = endpoints(&config, "connect");
+        let listen_port = endpoints(&config, "listen")
+            .iter()
+            .find_map(|e| endpoint_addr(e))
+            .map_or(0, |a| a.port());
+        let session = match open(config) {
+            // Taken between the check and the bind.
+            Err(BusError::Open { reason }) if reason.contains("Address already in use") => {
+                return Err(port_in_use(listen_port, role));
+            }
+            other => other?,
+        };
         Ok(ZenohBus {
-            session: open(config)?,
+            session,
             signing,
+            connect,
         })
     }
 
@@ -400,6 +480,36 @@ impl Bus for ZenohBus {
                 reason: e.to_string(),
             })?;
         Ok(Box::new(token))
+    }
+
+    fn unreached(&self) -> Option<String> {
+        let info = self.session.info();
+        if info.peers_zid().wait().next().is_some() || info.routers_zid().wait().next().is_some() {
+            return None;
+        }
+        if self.connect.is_empty() {
+            return Some("this session has no peer and connects to no endpoint".into());
+        }
+        let each: Vec<String> = self
+            .connect
+            .iter()
+            .map(|e| match endpoint_addr(e) {
+                None => format!("{e}: no session"),
+                Some(addr) => {
+                    match std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(1)) {
+                        Ok(_) => format!(
+                            "{e} accepts connections but no session comes of them: another program \
+                         holds the coordinator's port (is another coordinator running?), or it \
+                         refuses this side's TLS certificate"
+                        ),
+                        Err(why) => {
+                            format!("{e} cannot be reached ({why}): is the coordinator running?")
+                        }
+                    }
+                }
+            })
+            .collect();
+        Some(format!("no peer connected; {}", each.join("; ")))
     }
 }
 
@@ -694,6 +804,48 @@ mod tests {
                 .unwrap()
                 .is_empty()
         );
+    }
+
+    #[test]
+    fn endpoints_resolve_to_fixed_tcp_ports_only() {
+        let a = endpoint_addr("tcp/127.0.0.1:7447").unwrap();
+        assert_eq!(a.port(), 7447);
+        assert_eq!(
+            endpoint_addr("tls/[::1]:7448#iface=lo").unwrap().port(),
+            7448
+        );
+        for none in ["tcp/127.0.0.1:0", "udp/127.0.0.1:7447", "tcp/nohost", "x"] {
+            assert_eq!(endpoint_addr(none), None, "{none}");
+        }
+    }
+
+    /// A process listening on the port: one line naming the port and the
+    /// likely cause, no zenoh source path; a free port opens.
+    #[test]
+    fn a_listening_port_taken_by_another_process_is_named() {
+        let squatter = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = squatter.local_addr().unwrap().port();
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("coordinator.json5");
+        std::fs::write(
+            &f,
+            format!(
+                r#"{{ mode: "peer", listen: {{ endpoints: ["tcp/127.0.0.1:{port}"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"#
+            ),
+        )
+        .unwrap();
+        let e = ZenohBus::open(Some(&f), Role::Coordinator)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            format!("port {port} already in use: is another coordinator running?")
+        );
+        drop(squatter);
+        let bus = ZenohBus::open(Some(&f), Role::Coordinator).unwrap();
+        // Nobody connects to it, and it connects to nobody: it says so.
+        let why = bus.unreached().unwrap();
+        assert!(why.contains("connects to no endpoint"), "{why}");
     }
 
     #[test]

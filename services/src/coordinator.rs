@@ -6,6 +6,18 @@
 //! `history` queryables for whatever it missed while it was down (an agent's
 //! status says how many captures it has published, so a gap is visible).
 //! Invalid messages are rejected, counted and logged, never trusted.
+//!
+//! A run has a session ([`session_of`]), announced twice a second; agents
+//! stamp it into every message, and only messages of this session are used.
+//! An earlier run's captures replayed into this one (signed ones cannot be
+//! re-stamped) are dropped and logged, never taken for conflicts; an agent's
+//! captures sent before it heard the session come again, stamped, from its
+//! history. A status is believed no further than can be checked: one that
+//! claims more captures than the robot's history serves is replaced by the
+//! robot's own, history queries that bring nothing new stop after
+//! [`FRUITLESS_QUERIES`], and a robot finished with every capture held stays
+//! finished. A failed solve is published ([`RunFailure`]) so that the agents
+//! stop waiting.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -15,8 +27,9 @@ use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
-    AgentStatus, COORDINATOR, Capture, Envelope, HandEyeUpdate, KEY_ROOT, SessionAnnouncement,
-    agent_key, coordinator_alive_key, result_key, session_key,
+    AgentStatus, COORDINATOR, Capture, Envelope, FAILURE_REASON_MAX, HandEyeUpdate, KEY_ROOT,
+    RunFailure, SessionAnnouncement, agent_key, coordinator_alive_key, failure_key, result_key,
+    session_key,
 };
 
 use crate::agent::Sequence;
@@ -48,64 +61,151 @@ pub struct Counters {
     /// Captures that arrived with an index already held but other content.
     pub conflicts: usize,
     pub rejected: usize,
+    /// Messages of another session than this run's (an earlier run's
+    /// replayed, an agent of another coordinator), and captures and
+    /// hand-eyes of none (sent before the agent heard this run's session;
+    /// its history serves them again in the session): dropped, never a
+    /// conflict.
+    pub stale: usize,
 }
 
-/// Journals and keeps one message from the bus, with the certificate that
-/// signed it on the secured bus; for a valid status, returns its robot and the
-/// session it echoes (a live message, unlike the captures a history query
-/// returns).
+/// What one valid message of an agent was.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Heard {
+    robot: String,
+    /// A status (a live message, unlike the captures a history query returns).
+    status: bool,
+    /// A capture's index.
+    index: Option<u64>,
+    /// It carries this run's session.
+    in_session: bool,
+    /// What the store made of it (`None`: not offered, not of this session).
+    arrival: Option<Arrival>,
+}
+
+/// Checks one message from the bus and, when it belongs to this run's
+/// `session`, journals and keeps it, with the certificate that signed it on
+/// the secured bus. What is not of the session is dropped (logged, counted
+/// as stale), except a status of none, which only says the agent has not
+/// heard this run yet. Returns what the message was, for a valid one.
 fn handle(
     store: &mut Store,
     counters: &mut Counters,
     key: &str,
     bytes: &[u8],
     signer: Option<&str>,
-) -> anyhow::Result<Option<(String, Option<String>)>> {
+    session: &str,
+) -> anyhow::Result<Option<Heard>> {
     let Some((_, topic)) = bus::parse_agent_key(key) else {
         return Ok(None);
     };
-    let mut echo = None;
-    let sample = match topic {
+    let decoded = match topic {
         "capture" => bus::decode::<Capture>(key, bytes).map(Sample::Capture),
-        "status" => bus::decode::<AgentStatus>(key, bytes).map(|e| {
-            echo = Some((e.robot.clone(), e.session.clone()));
-            Sample::Status(e)
-        }),
+        "status" => bus::decode::<AgentStatus>(key, bytes).map(Sample::Status),
         "hand_eye" => bus::decode::<HandEyeUpdate>(key, bytes).map(Sample::HandEye),
         _ => return Ok(None),
     };
-    match sample {
-        Ok(sample) => match store.accept_from(sample, signer)? {
-            Arrival::New => counters.accepted += 1,
-            Arrival::Duplicate => counters.duplicates += 1,
-            Arrival::Conflict => counters.conflicts += 1,
-        },
+    let sample = match decoded {
+        Ok(sample) => sample,
         Err(reason) => {
             counters.rejected += 1;
             crate::warn_limited(key, &reason);
+            return Ok(None);
+        }
+    };
+    let (robot, theirs, status, index) = match &sample {
+        Sample::Capture(e) => (&e.robot, &e.session, false, Some(e.body.index)),
+        Sample::Status(e) => (&e.robot, &e.session, true, None),
+        Sample::HandEye(e) => (&e.robot, &e.session, false, None),
+    };
+    let mut heard = Heard {
+        robot: robot.clone(),
+        status,
+        index,
+        in_session: theirs.as_deref() == Some(session),
+        arrival: None,
+    };
+    match theirs {
+        Some(s) if s == session => {}
+        None if status => return Ok(Some(heard)),
+        None => {
+            counters.stale += 1;
+            tracing::debug!(
+                "{key}: sent before the agent heard this run's session: dropped (its history \
+                 serves it again in the session)"
+            );
+            return Ok(Some(heard));
+        }
+        Some(other) => {
+            counters.stale += 1;
+            crate::warn_limited(
+                &format!("{key} stale"),
+                &format!(
+                    "{key}: dropped a message of session {other}, not this run's {session} (an \
+                     earlier run's, replayed, or an agent of another coordinator)"
+                ),
+            );
+            return Ok(Some(heard));
         }
     }
-    Ok(echo)
+    let arrival = store.accept_from(sample, signer)?;
+    match arrival {
+        Arrival::New => counters.accepted += 1,
+        Arrival::Duplicate => counters.duplicates += 1,
+        Arrival::Conflict => counters.conflicts += 1,
+    }
+    heard.arrival = Some(arrival);
+    Ok(Some(heard))
 }
 
+/// Asks the `history` queryables matching `selector` for every capture and
+/// keeps those of this run's session. Each robot that answered is recorded
+/// with how many valid captures of the session it served
+/// ([`Store::history_served`]; one that did not answer may be down, and says
+/// nothing). Returns the robots that gave something new.
 fn catch_up(
     bus: &dyn Bus,
     store: &mut Store,
     counters: &mut Counters,
     selector: &str,
-) -> anyhow::Result<()> {
-    for reply in bus.query(selector, Duration::from_secs(2))? {
+    session: &str,
+) -> anyhow::Result<std::collections::BTreeSet<String>> {
+    let mut served: std::collections::BTreeMap<String, std::collections::BTreeSet<u64>> =
+        Default::default();
+    let mut news = std::collections::BTreeSet::new();
+    for reply in bus.query(selector, HISTORY_QUERY_TIMEOUT)? {
         let key = reply.key.replace("/history", "/capture");
-        handle(
+        let heard = handle(
             store,
             counters,
             &key,
             &reply.payload,
             reply.signer.as_deref(),
+            session,
         )?;
+        if let Some(h) = heard.filter(|h| h.in_session) {
+            if let Some(index) = h.index {
+                served.entry(h.robot.clone()).or_default().insert(index);
+            }
+            if h.arrival == Some(Arrival::New) {
+                news.insert(h.robot);
+            }
+        }
     }
-    Ok(())
+    for (robot, indices) in served {
+        store.history_served(&robot, indices.len() as u64);
+    }
+    Ok(news)
 }
+
+/// How long a history query waits for its replies.
+pub const HISTORY_QUERY_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// How many history queries in a row may bring a robot nothing new before
+/// the coordinator stops asking it (until something new of it arrives, or
+/// it first echoes the session): what a status claims beyond that is not
+/// waited for by re-asking.
+pub const FRUITLESS_QUERIES: u32 = 3;
 
 /// Computes the result from what the store holds.
 pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationResult> {
@@ -199,10 +299,11 @@ fn compute_rgbd(
 /// finished (or `stop` is set), then computes, publishes and returns the result.
 pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationResult, Counters)> {
     let bus = bus::ZenohBus::open(opts.zenoh.as_deref(), bus::Role::Coordinator)?;
-    let out = run_on(&bus, opts, stop)?;
-    // Give the result a moment to leave before the session closes.
+    let out = run_on(&bus, opts, stop);
+    // Give the result, or the failure, a moment to leave before the session
+    // closes.
     std::thread::sleep(Duration::from_millis(300));
-    Ok(out)
+    out
 }
 
 /// How often `run` says whom it is still waiting for (stderr).
@@ -286,7 +387,7 @@ pub fn session_of(state_dir: &std::path::Path) -> anyhow::Result<String> {
 }
 
 /// The body of [`run_on`]: gathers until complete, solves, publishes the
-/// result in `session`.
+/// result in `session`, or the reason the solve failed.
 fn collect_and_solve(
     bus: &dyn Bus,
     opts: &RunOptions,
@@ -297,74 +398,199 @@ fn collect_and_solve(
     session: &str,
 ) -> anyhow::Result<(CalibrationResult, Counters)> {
     let mut counters = Counters::default();
-    catch_up(bus, store, &mut counters, &agent_key("*", "history"))?;
+    catch_up(
+        bus,
+        store,
+        &mut counters,
+        &agent_key("*", "history"),
+        session,
+    )?;
+    let mut gather = Gathering::default();
     let mut last_check = Instant::now();
     let mut last_report = Instant::now();
-    // The robots whose statuses have echoed this run's session (a later
-    // status without it, forged or stale, takes nothing back).
-    let mut echoed: std::collections::BTreeSet<String> = Default::default();
-    let not_echoing = |store: &Store, echoed: &std::collections::BTreeSet<String>| {
-        let ids = opts.order.clone().unwrap_or_else(|| store.robots());
-        ids.into_iter()
-            .filter(|r| !echoed.contains(r))
-            .collect::<Vec<_>>()
-    };
     loop {
         if stop.load(Ordering::SeqCst)
             || (store.complete(opts.order.as_deref(), opts.robots)
-                && not_echoing(store, &echoed).is_empty())
+                && gather.not_echoing(store, opts).is_empty())
         {
             break;
         }
         if last_report.elapsed() >= WAIT_REPORT_PERIOD {
             last_report = Instant::now();
-            let mut waiting = store.waiting_for(opts.order.as_deref(), opts.robots);
-            // One phrase per robot: the echo joins what the store says of it.
-            for r in not_echoing(store, &echoed) {
-                let echo = format!(
-                    "its statuses do not echo this run's session {session} yet (an agent of \
-                     another run, or one that has not heard the coordinator)"
-                );
-                match waiting
-                    .iter_mut()
-                    .find(|w| w.starts_with(&format!("{r}: ")))
-                {
-                    Some(w) => {
-                        w.push_str(", and ");
-                        w.push_str(&echo);
-                    }
-                    None => waiting.push(format!("{r}: {echo}")),
-                }
-            }
-            eprintln!("coordinator: waiting for {}", waiting.join("; "));
+            eprintln!(
+                "coordinator: waiting for {}",
+                gather.waiting_for(store, opts, session).join("; ")
+            );
         }
         if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))?
-            && let Some((robot, Some(echo))) = handle(
+            && let Some(heard) = handle(
                 store,
                 &mut counters,
                 &m.key,
                 &m.payload,
                 m.signer.as_deref(),
+                session,
             )?
-            && echo == session
         {
-            echoed.insert(robot);
+            gather.heard(&heard);
         }
         if last_check.elapsed() > Duration::from_millis(500) {
             last_check = Instant::now();
-            for robot in store.missing() {
+            for robot in gather.to_ask(store) {
                 tracing::info!("asking {robot} for captures missed");
-                catch_up(bus, store, &mut counters, &agent_key(&robot, "history"))?;
+                let news = catch_up(
+                    bus,
+                    store,
+                    &mut counters,
+                    &agent_key(&robot, "history"),
+                    session,
+                )?;
+                gather.answered(&robot, news.contains(&robot));
             }
         }
     }
-    let result = compute(store, opts)?;
+    let result = match compute(store, opts) {
+        Ok(result) => result,
+        Err(e) => {
+            // The agents wait for this run's answer: they hear the failure
+            // and stop waiting.
+            let failure = RunFailure {
+                reason: failure_reason(&format!("{e:#}")),
+            };
+            let sent = seq.take().and_then(|n| {
+                bus::publish(
+                    bus,
+                    &failure_key(),
+                    &Envelope::new(COORDINATOR, n, failure).in_session(Some(session)),
+                )
+                .map_err(anyhow::Error::from)
+            });
+            if let Err(p) = sent {
+                tracing::warn!("could not tell the agents the solve failed: {p:#}");
+            }
+            return Err(e);
+        }
+    };
     bus::publish(
         bus,
         &result_key(),
         &Envelope::new(COORDINATOR, seq.take()?, result.clone()).in_session(Some(session)),
     )?;
     Ok((result, counters))
+}
+
+/// An error as a [`RunFailure::reason`]: one line of printable characters,
+/// cut to [`FAILURE_REASON_MAX`] bytes.
+fn failure_reason(text: &str) -> String {
+    let line: String = text
+        .chars()
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .collect();
+    let line = line.trim();
+    if line.is_empty() {
+        return "the solve failed without a reason".into();
+    }
+    if line.len() <= FAILURE_REASON_MAX {
+        return line.to_owned();
+    }
+    let mut cut = FAILURE_REASON_MAX - '…'.len_utf8();
+    while !line.is_char_boundary(cut) {
+        cut -= 1;
+    }
+    format!("{}…", &line[..cut])
+}
+
+/// What the gathering loop knows beside the store: who echoes the session,
+/// and how often each robot's history was asked in vain.
+#[derive(Debug, Default)]
+struct Gathering {
+    /// The robots whose statuses have echoed this run's session (a later
+    /// status without it, forged or stale, takes nothing back).
+    echoed: std::collections::BTreeSet<String>,
+    /// Robots heard only without this run's session so far.
+    unbound: std::collections::BTreeSet<String>,
+    /// History queries in a row that brought a robot nothing new.
+    fruitless: std::collections::BTreeMap<String, u32>,
+}
+
+impl Gathering {
+    /// Notes a valid message: a first echo of the session, or a new capture
+    /// of a robot, makes its history worth asking again.
+    fn heard(&mut self, h: &Heard) {
+        if h.status && !h.in_session && !self.echoed.contains(&h.robot) {
+            self.unbound.insert(h.robot.clone());
+        }
+        if h.status && h.in_session && self.echoed.insert(h.robot.clone()) {
+            self.unbound.remove(&h.robot);
+            self.fruitless.remove(&h.robot);
+        }
+        if h.index.is_some() && h.arrival == Some(Arrival::New) {
+            self.fruitless.remove(&h.robot);
+        }
+    }
+
+    /// The robots missing captures whose history is still worth asking:
+    /// at most [`FRUITLESS_QUERIES`] answers in a row without anything new.
+    fn to_ask(&self, store: &Store) -> Vec<String> {
+        store
+            .missing()
+            .into_iter()
+            .filter(|r| self.fruitless.get(r).copied().unwrap_or(0) < FRUITLESS_QUERIES)
+            .collect()
+    }
+
+    fn answered(&mut self, robot: &str, anything_new: bool) {
+        let n = self.fruitless.entry(robot.to_owned()).or_default();
+        *n = if anything_new { 0 } else { *n + 1 };
+    }
+
+    /// The robots of the run whose statuses have not echoed its session.
+    fn not_echoing(&self, store: &Store, opts: &RunOptions) -> Vec<String> {
+        let mut ids = opts.order.clone().unwrap_or_else(|| store.robots());
+        if opts.order.is_none() {
+            ids.extend(self.unbound.iter().cloned());
+            ids.sort();
+            ids.dedup();
+        }
+        ids.into_iter()
+            .filter(|r| !self.echoed.contains(r))
+            .collect()
+    }
+
+    /// One phrase per robot not done: what the store says of it, and that
+    /// its statuses do not echo the session.
+    fn waiting_for(&self, store: &Store, opts: &RunOptions, session: &str) -> Vec<String> {
+        let mut waiting = store.waiting_for(opts.order.as_deref(), opts.robots);
+        for r in self.not_echoing(store, opts) {
+            let echo = format!(
+                "its statuses do not echo this run's session {session} yet (an agent of \
+                 another run, or one that has not heard the coordinator)"
+            );
+            match waiting
+                .iter_mut()
+                .find(|w| w.starts_with(&format!("{r}: ")))
+            {
+                Some(w) => {
+                    w.push_str(", and ");
+                    w.push_str(&echo);
+                }
+                None => waiting.push(format!("{r}: {echo}")),
+            }
+        }
+        for (r, n) in &self.fruitless {
+            if *n >= FRUITLESS_QUERIES
+                && let Some(w) = waiting
+                    .iter_mut()
+                    .find(|w| w.starts_with(&format!("{r}: ")))
+            {
+                w.push_str(&format!(
+                    " (its history, asked {n} times, gave nothing new: asked again when \
+                     something new of it arrives)"
+                ));
+            }
+        }
+        waiting
+    }
 }
 
 /// The RGB-D method with hand-eyes read from HANDEYE.json files, one per robot of

@@ -113,8 +113,7 @@ pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> anyhow::Res
             "--robots: robot id '{r}' is given twice"
         );
     }
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    create_folder(dir)?;
     let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.to_owned());
     anyhow::ensure!(
         !dir.join(CA_KEY).exists(),
@@ -215,9 +214,7 @@ pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
     )?];
     let coordinator_file = dir.join(format!("{COORDINATOR}.json5"));
     let text = serde_json::to_string_pretty(&coordinator_config(&dir, &robots, &endpoints))?;
-    std::fs::write(&coordinator_file, text + "\n")
-        .with_context(|| format!("cannot write {}", coordinator_file.display()))?;
-    files.push(coordinator_file);
+    files.push(write_public(&coordinator_file, &(text + "\n"))?);
     Ok(Issued { files, configs })
 }
 
@@ -251,6 +248,7 @@ pub fn revoke(dir: &Path, holder: &str) -> anyhow::Result<Issued> {
         .append(true)
         .open(&list)
         .with_context(|| format!("cannot open {}", list.display()))?;
+    set_mode(&list, PUBLIC_MODE)?;
     let when = crate::history::now_unix_ms() / 1000;
     writeln!(
         out,
@@ -449,8 +447,77 @@ fn cart_config(dir: &Path, robot: &str, endpoints: &Endpoints) -> Value {
     })
 }
 
+/// Certificates, configurations and the revocation list: readable by all,
+/// writable by the owner only, whatever the umask (a trust anchor or an
+/// access rule anyone may rewrite is neither).
+const PUBLIC_MODE: u32 = 0o644;
+/// Private keys: the owner only.
+const SECRET_MODE: u32 = 0o600;
+/// The authority's folder when `pki init` creates it: no one but the owner
+/// may add, remove or rename files in it.
+const FOLDER_MODE: u32 = 0o755;
+
+/// Sets `path`'s permission bits to exactly `mode` (the umask never widens
+/// nor narrows what is written).
+fn set_mode(path: &Path, mode: u32) -> anyhow::Result<()> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode))
+            .with_context(|| format!("cannot set the permissions of {}", path.display()))?;
+    }
+    #[cfg(not(unix))]
+    let _ = (path, mode);
+    Ok(())
+}
+
+/// Creates `dir` and its missing parents as [`FOLDER_MODE`] (less what the
+/// umask takes away); a folder that is there already loses group and other
+/// write permission, if it had them.
+fn create_folder(dir: &Path) -> anyhow::Result<()> {
+    let mut builder = std::fs::DirBuilder::new();
+    builder.recursive(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::DirBuilderExt;
+        builder.mode(FOLDER_MODE);
+    }
+    builder
+        .create(dir)
+        .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(dir)
+            .with_context(|| format!("cannot read {}", dir.display()))?
+            .permissions()
+            .mode()
+            & 0o7777;
+        if mode & 0o022 != 0 {
+            set_mode(dir, mode & !0o022)?;
+        }
+    }
+    Ok(())
+}
+
+/// Writes (or replaces) a public file with [`PUBLIC_MODE`].
 fn write_public(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
-    std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create(true).truncate(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(PUBLIC_MODE);
+    }
+    let mut file = options
+        .open(path)
+        .with_context(|| format!("cannot create {}", path.display()))?;
+    // Created with the mode less the umask, or there before with its own:
+    // set it outright.
+    set_mode(path, PUBLIC_MODE)?;
+    file.write_all(text.as_bytes())
+        .and_then(|_| file.sync_all())
+        .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(path.to_owned())
 }
 
@@ -462,11 +529,12 @@ fn write_secret(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::OpenOptionsExt;
-        options.mode(0o600);
+        options.mode(SECRET_MODE);
     }
     let mut file = options
         .open(path)
         .with_context(|| format!("cannot create {}", path.display()))?;
+    set_mode(path, SECRET_MODE)?;
     file.write_all(text.as_bytes())
         .and_then(|_| file.sync_all())
         .with_context(|| format!("cannot write {}", path.display()))?;

@@ -78,6 +78,9 @@ pub struct Store {
     conflicts: BTreeMap<String, BTreeMap<u64, Vec<Capture>>>,
     status: BTreeMap<String, (u64, AgentStatus)>,
     hand_eye: BTreeMap<String, (u64, HandEyeUpdate)>,
+    /// By robot, the most captures its `history` has served in one answer
+    /// ([`Store::history_served`]): a status claiming more is not believed.
+    served: BTreeMap<String, u64>,
     /// Lines of the journal that could not be read back (a crash mid-write).
     pub skipped_lines: usize,
 }
@@ -99,6 +102,7 @@ impl Store {
             conflicts: BTreeMap::new(),
             status: BTreeMap::new(),
             hand_eye: BTreeMap::new(),
+            served: BTreeMap::new(),
             skipped_lines: 0,
         };
         // A partial last line (crash mid-write) must not swallow the next sample.
@@ -155,11 +159,20 @@ impl Store {
                 }
             }
             // A newer status, or any status when the one held is contradicted
-            // by the captures that arrived (a forged or stale status must not
-            // outrank the robot's own by its sequence number).
+            // by the captures that arrived or claims more than the robot's
+            // history holds (a forged or stale status must not outrank the
+            // robot's own by its sequence number). A robot finished with
+            // every capture held stays so: only a newer status that finishes
+            // it as well replaces that one.
             Sample::Status(e) => new(match self.status.get(&e.robot) {
                 None => true,
-                Some((seq, s)) => s != &e.body && (e.seq > *seq || self.contradicted(&e.robot, s)),
+                Some((_, s)) if s == &e.body => false,
+                Some((seq, s)) if self.finished(&e.robot, s) => {
+                    e.seq > *seq && self.finished(&e.robot, &e.body)
+                }
+                Some((seq, s)) => {
+                    e.seq > *seq || self.contradicted(&e.robot, s) || self.overclaims(&e.robot, s)
+                }
             }),
             Sample::HandEye(e) => new(self
                 .hand_eye
@@ -281,6 +294,29 @@ impl Store {
         s.published < self.contiguous(robot)
     }
 
+    /// Records that `robot`'s `history` queryable, asked, served `captures`
+    /// valid captures of this run. The robot's own statuses never claim more
+    /// than its history holds.
+    pub fn history_served(&mut self, robot: &str, captures: u64) {
+        let most = self.served.entry(robot.to_owned()).or_default();
+        *most = (*most).max(captures);
+    }
+
+    /// A status that claims more captures than the robot's history has
+    /// served and than have arrived (a forged or stale count: the robot's own
+    /// history holds every capture it published). `None` before its history
+    /// was asked.
+    fn overclaims(&self, robot: &str, s: &AgentStatus) -> bool {
+        self.served
+            .get(robot)
+            .is_some_and(|served| s.published > (*served).max(self.contiguous(robot)))
+    }
+
+    /// What a robot's history has served at most, once asked.
+    pub fn served(&self, robot: &str) -> Option<u64> {
+        self.served.get(robot).copied()
+    }
+
     /// Captures with conflicting versions, over all robots.
     pub fn conflict_count(&self) -> usize {
         self.conflicts.values().map(BTreeMap::len).sum()
@@ -358,6 +394,12 @@ impl Store {
                          status; waiting for one that agrees)",
                         s.published,
                         self.contiguous(r)
+                    )),
+                    Some(s) if self.overclaims(r, s) => Some(format!(
+                        "{r}: its status says {} published, but its history holds {} (a stale \
+                         or forged status; waiting for one that agrees)",
+                        s.published,
+                        self.served(r).unwrap_or_default()
                     )),
                     Some(s) if s.state == AgentState::Finished => Some(format!(
                         "{r}: finished, {} of its {} captures held (asking for the rest)",
@@ -874,13 +916,61 @@ mod tests {
         let real = Sample::Status(Envelope::new("robot1", 3, status(AgentState::Finished, 2)));
         assert_eq!(s.accept(real).unwrap(), Arrival::New);
         assert!(s.complete(None, 1));
-        // The forgery again: it outranks by sequence, but never completes or
-        // fails the robot, and the robot's next status takes over again.
-        assert_eq!(s.accept(forged()).unwrap(), Arrival::New);
+        // The forgery again, or one that says it is still capturing: a
+        // finished robot stays finished, whatever the sequence number.
+        assert_eq!(s.accept(forged()).unwrap(), Arrival::Duplicate);
+        let capturing = Sample::Status(Envelope::new(
+            "robot1",
+            1 << 51,
+            status(AgentState::Capturing, 999),
+        ));
+        assert_eq!(s.accept(capturing).unwrap(), Arrival::Duplicate);
+        assert!(s.complete(None, 1));
+        // A capture beyond what it said it published: the finished status is
+        // contradicted, and the robot's next status takes over.
+        s.accept(Sample::Capture(Envelope::new("robot1", 4, capture(2))))
+            .unwrap();
         assert!(!s.complete(None, 1));
-        let real = Sample::Status(Envelope::new("robot1", 4, status(AgentState::Finished, 2)));
+        let real = Sample::Status(Envelope::new("robot1", 5, status(AgentState::Finished, 3)));
         assert_eq!(s.accept(real).unwrap(), Arrival::New);
         assert!(s.complete(None, 1));
+    }
+
+    /// A forged "capturing, 999 published" with a huge sequence number: it
+    /// outranks the robot's own statuses only until the robot's history,
+    /// asked, serves fewer; then the robot's own status (lower sequence)
+    /// replaces it and finishes the robot.
+    #[test]
+    fn a_status_claiming_more_than_the_history_holds_is_replaced() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        for i in 0..3 {
+            s.accept(Sample::Capture(Envelope::new("robot1", i + 1, capture(i))))
+                .unwrap();
+        }
+        let forged = Sample::Status(Envelope::new(
+            "robot1",
+            1 << 50,
+            status(AgentState::Capturing, 999),
+        ));
+        assert_eq!(s.accept(forged).unwrap(), Arrival::New);
+        assert_eq!(s.missing(), ["robot1"]);
+        let real = || Sample::Status(Envelope::new("robot1", 9, status(AgentState::Finished, 3)));
+        // Not yet disproved: the sequence number decides.
+        assert_eq!(s.accept(real()).unwrap(), Arrival::Duplicate);
+        assert!(!s.complete(None, 1));
+        s.history_served("robot1", 3);
+        assert!(
+            s.waiting_for(None, 1)[0].contains("says 999 published, but its history holds 3"),
+            "{:?}",
+            s.waiting_for(None, 1)
+        );
+        // An answer with fewer (a reply lost) does not lower what was served.
+        s.history_served("robot1", 0);
+        assert_eq!(s.served("robot1"), Some(3));
+        assert_eq!(s.accept(real()).unwrap(), Arrival::New);
+        assert!(s.complete(None, 1));
+        assert!(s.missing().is_empty());
     }
 
     /// A status from a robot nobody expects, and a capture with a stray
@@ -926,14 +1016,21 @@ mod tests {
             "{:?}",
             o.rejected
         );
-        // A robot that says it published 3 with index 2 missing is not complete.
-        s.accept(Sample::Status(Envelope::new(
-            "robot2",
-            11,
-            status(AgentState::Finished, 3),
-        )))
-        .unwrap();
-        assert!(!s.complete(Some(&ids), 2));
+        // A finished robot stays so: a later status that says it published 3
+        // with index 2 missing takes nothing back.
+        let more = || Sample::Status(Envelope::new("robot2", 11, status(AgentState::Finished, 3)));
+        assert_eq!(s.accept(more()).unwrap(), Arrival::Duplicate);
+        assert!(s.complete(Some(&ids), 2));
+        // Before it finished, that status is taken: not complete, and
+        // index 2 is asked for.
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        for i in 0..2 {
+            s.accept(Sample::Capture(Envelope::new("robot2", i + 1, capture(i))))
+                .unwrap();
+        }
+        assert_eq!(s.accept(more()).unwrap(), Arrival::New);
+        assert!(!s.complete(None, 1));
         assert_eq!(s.missing(), ["robot2"]);
     }
 

@@ -9,8 +9,8 @@
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::Pose;
 use b2b_protocol::messages::{
-    AgentState, AgentStatus, BoardObservation, Capture, DriftAlarm, Envelope, HandEyeUpdate,
-    Intrinsics,
+    AgentState, AgentStatus, BoardObservation, Capture, DriftAlarm, Envelope, FAILURE_REASON_MAX,
+    HandEyeUpdate, Intrinsics, RunFailure,
 };
 use b2b_services::bus::decode;
 use b2b_services::store::{Sample, Store};
@@ -111,6 +111,11 @@ fn decode_everything(bytes: &[u8]) -> Vec<Sample> {
     }
     let _ = decode::<CalibrationResult>("b2b/coordinator/result", bytes);
     let _ = decode::<DriftAlarm>("b2b/coordinator/alarm", bytes);
+    if let Ok(e) = decode::<RunFailure>("b2b/coordinator/failure", bytes) {
+        // What an agent prints: bounded and without control characters.
+        assert!(e.body.reason.len() <= FAILURE_REASON_MAX);
+        assert!(!e.body.reason.chars().any(|c| c.is_control() && c != '\n'));
+    }
     decoded
 }
 
@@ -124,6 +129,7 @@ fn through_the_store(samples: Vec<Sample>) {
     for s in samples {
         store.accept(s).unwrap();
     }
+    store.history_served("robot1", 1);
     let _ = store.observations("robot1");
     let _ = store.rgbd_views("robot1");
     let _ = store.target_centre(&["robot1"]);

@@ -251,3 +251,121 @@ fn killed_and_restarted_processes_lose_nothing() {
     );
     assert_same(&read_result(&net), &offline_result(net.dir.path()));
 }
+
+/// Runs `child` to its end (killed past `limit`, only so that a hang fails
+/// the test); its exit status and stderr.
+fn ended(mut child: Child, what: &str, limit: Duration) -> (std::process::ExitStatus, String) {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut err = String::new();
+            if let Some(mut e) = child.stderr.take() {
+                use std::io::Read;
+                let _ = e.read_to_string(&mut err);
+            }
+            return (status, err);
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("{what} did not end within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// The loopback port of the test network's coordinator.
+fn port_of(net: &Net) -> u16 {
+    let text = std::fs::read_to_string(&net.coordinator_cfg).unwrap();
+    let at = text.find("127.0.0.1:").unwrap() + "127.0.0.1:".len();
+    text[at..]
+        .chars()
+        .take_while(char::is_ascii_digit)
+        .collect::<String>()
+        .parse()
+        .unwrap()
+}
+
+/// Another process on the coordinator's port (here: a listener that never
+/// speaks zenoh): the coordinator refuses in one line naming the port and
+/// the likely cause, no source path; an agent that connects there says it
+/// hears no coordinator, and why, instead of only "no result".
+#[test]
+fn a_port_already_taken_is_named_by_the_coordinator_and_the_agents() {
+    let net = net();
+    let port = port_of(&net);
+    let _squatter = std::net::TcpListener::bind(("127.0.0.1", port)).unwrap();
+    let (status, err) = ended(coordinator(&net), "coordinator", Duration::from_secs(60));
+    assert!(!status.success(), "{err}");
+    let last = err.lines().last().unwrap_or_default();
+    assert_eq!(
+        last,
+        format!("error: port {port} already in use: is another coordinator running?"),
+        "{err}"
+    );
+    assert!(!err.contains(".rs:") && !err.contains("/src/"), "{err}");
+    let a = Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["run", "--quiet", "--robot", "robot1", "--replay"])
+        .arg(dataset())
+        .arg("--zenoh")
+        .arg(&net.agent_cfg)
+        .arg("--state-dir")
+        .arg(net.dir.path().join("agent-state-robot1"))
+        .args(["--wait-result-s", "8"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (status, err) = ended(a, "agent robot1", Duration::from_secs(120));
+    assert!(!status.success(), "{err}");
+    let last = err.lines().last().unwrap_or_default();
+    assert!(
+        last.starts_with(
+            "error: no result from the coordinator within 8 s, and no coordinator heard"
+        ) && last.contains(&format!("tcp/127.0.0.1:{port} accepts connections"))
+            && last.contains("is another coordinator running?"),
+        "{err}"
+    );
+}
+
+/// A live solve that fails (the RGB-D method on captures published without
+/// features): the coordinator publishes the reason, and each agent, which
+/// would otherwise wait its 600 s, exits at once, non-zero, with it.
+#[test]
+fn a_failed_live_solve_ends_the_agents_with_its_reason() {
+    let net = net();
+    let c = coordinator_with(&net, "rgbd");
+    let agents: Vec<Child> = ["robot1", "robot2"]
+        .into_iter()
+        .map(|robot| {
+            Command::new(env!("CARGO_BIN_EXE_agent"))
+                .args(["run", "--quiet", "--robot", robot, "--replay"])
+                .arg(dataset())
+                .arg("--zenoh")
+                .arg(&net.agent_cfg)
+                .arg("--state-dir")
+                .arg(net.dir.path().join(format!("agent-state-{robot}")))
+                .args(["--features", "none", "--wait-result-s", "600"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    let (status, err) = ended(c, "coordinator", Duration::from_secs(120));
+    assert!(!status.success(), "{err}");
+    let reason = err
+        .lines()
+        .last()
+        .and_then(|l| l.strip_prefix("error: "))
+        .unwrap_or_else(|| panic!("{err}"))
+        .to_owned();
+    for (a, robot) in agents.into_iter().zip(["robot1", "robot2"]) {
+        // The watchdog only keeps a hang from hanging the test.
+        let (status, err) = ended(a, robot, Duration::from_secs(120));
+        assert!(!status.success(), "{robot}: {err}");
+        assert!(
+            err.contains(&format!("error: the coordinator's solve failed: {reason}")),
+            "{robot}: {err} (the coordinator: {reason})"
+        );
+    }
+}

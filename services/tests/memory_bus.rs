@@ -8,14 +8,16 @@ mod common;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Duration;
 
 use b2b_calib::refine::RefineOptions;
-use b2b_protocol::messages::{COORDINATOR, result_key};
+use b2b_protocol::messages::{
+    AgentState, AgentStatus, COORDINATOR, Envelope, SessionAnnouncement, result_key, session_key,
+};
 use b2b_services::agent::{AgentOptions, ReplaySource, run_agent_on};
-use b2b_services::bus::{Bus, MemoryBus};
-use b2b_services::coordinator::{RunOptions, run_on};
+use b2b_services::bus::{Bus, BusError, Declaration, Inbox, MemoryBus, Received, Replies};
+use b2b_services::coordinator::{Counters, FRUITLESS_QUERIES, RunOptions, run_on};
 
 fn dataset() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")
@@ -42,6 +44,18 @@ fn replay_agent(
     wait_result: Duration,
     stop: &AtomicBool,
 ) -> anyhow::Result<Option<b2b_protocol::CalibrationResult>> {
+    replay_agent_of(bus, &dataset(), robot, state_dir, wait_result, stop)
+}
+
+/// [`replay_agent`] on `data`.
+fn replay_agent_of(
+    bus: Arc<dyn Bus>,
+    data: &Path,
+    robot: &str,
+    state_dir: &Path,
+    wait_result: Duration,
+    stop: &AtomicBool,
+) -> anyhow::Result<Option<b2b_protocol::CalibrationResult>> {
     let opts = AgentOptions {
         robot: robot.into(),
         zenoh: None,
@@ -52,7 +66,7 @@ fn replay_agent(
         refine: RefineOptions::default(),
         rerun: Arc::new(b2b_viz::Recorder::disabled()),
     };
-    let mut source = ReplaySource::open(&dataset(), robot)?;
+    let mut source = ReplaySource::open(data, robot)?;
     run_agent_on(bus, &opts, &mut source, stop)
 }
 
@@ -114,94 +128,339 @@ fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
     assert!(envelope["body"]["T_base1_base2"].is_object());
 }
 
-/// A bus that drops the session from one robot's statuses: an agent that never
-/// echoes the coordinator's session (one of another run, or one that never
-/// heard this coordinator).
-struct WithoutEcho {
+/// A bus that drops the session from one robot's statuses (an agent that
+/// never echoes the coordinator's session: one of another run, or one that
+/// never heard this coordinator), and counts the history queries.
+#[derive(Default)]
+struct Tampered {
     inner: MemoryBus,
-    robot: &'static str,
+    without_echo: Option<&'static str>,
+    queries: AtomicUsize,
 }
 
-impl Bus for WithoutEcho {
-    fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), b2b_services::bus::BusError> {
-        if key == format!("b2b/agent/{}/status", self.robot) {
+impl Bus for Tampered {
+    fn put(&self, key: &str, payload: Vec<u8>) -> Result<(), BusError> {
+        if let Some(robot) = self.without_echo
+            && key == format!("b2b/agent/{robot}/status")
+        {
             let mut v: serde_json::Value = serde_json::from_slice(&payload).unwrap();
             v.as_object_mut().unwrap().remove("session");
             return self.inner.put(key, serde_json::to_vec(&v).unwrap());
         }
         self.inner.put(key, payload)
     }
-    fn subscribe(
-        &self,
-        key_expr: &str,
-    ) -> Result<Box<dyn b2b_services::bus::Inbox>, b2b_services::bus::BusError> {
+    fn subscribe(&self, key_expr: &str) -> Result<Box<dyn Inbox>, BusError> {
         self.inner.subscribe(key_expr)
     }
-    fn query(
-        &self,
-        selector: &str,
-        timeout: Duration,
-    ) -> Result<Vec<b2b_services::bus::Received>, b2b_services::bus::BusError> {
+    fn query(&self, selector: &str, timeout: Duration) -> Result<Vec<Received>, BusError> {
+        self.queries.fetch_add(1, Ordering::SeqCst);
         self.inner.query(selector, timeout)
     }
-    fn serve(
-        &self,
-        key: &str,
-        replies: b2b_services::bus::Replies,
-    ) -> Result<b2b_services::bus::Declaration, b2b_services::bus::BusError> {
+    fn serve(&self, key: &str, replies: Replies) -> Result<Declaration, BusError> {
         self.inner.serve(key, replies)
     }
-    fn announce(
-        &self,
-        key: &str,
-    ) -> Result<b2b_services::bus::Declaration, b2b_services::bus::BusError> {
+    fn announce(&self, key: &str) -> Result<Declaration, BusError> {
         self.inner.announce(key)
     }
 }
 
+/// Sets `stop` after `limit` unless `done` is set first; says whether it did.
+/// Only so that a stalled loop fails its test instead of hanging it.
+fn watchdog(stop: Arc<AtomicBool>, done: Arc<AtomicBool>, limit: Duration) -> Arc<AtomicBool> {
+    let fired = Arc::new(AtomicBool::new(false));
+    let said = Arc::clone(&fired);
+    std::thread::spawn(move || {
+        let start = std::time::Instant::now();
+        while !done.load(Ordering::SeqCst) {
+            if start.elapsed() > limit {
+                said.store(true, Ordering::SeqCst);
+                stop.store(true, Ordering::SeqCst);
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    });
+    fired
+}
+
+/// The run's session, as the coordinator announces it on `bus`.
+fn announced_session(sessions: &dyn Inbox) -> String {
+    let m = sessions
+        .recv_timeout(Duration::from_secs(30))
+        .unwrap()
+        .expect("no session announced");
+    let e: Envelope<SessionAnnouncement> = serde_json::from_slice(&m.payload).unwrap();
+    e.body.session
+}
+
+type Outcome = (
+    anyhow::Result<(b2b_protocol::CalibrationResult, Counters)>,
+    Vec<anyhow::Result<Option<b2b_protocol::CalibrationResult>>>,
+);
+
+/// A coordinator for robot1 and robot2 and their agents replaying `data`,
+/// threads on `bus`, while `meddle` runs beside them until the coordinator
+/// returns (its argument says when). Fails the test if the watchdog had to
+/// stop anything.
+fn run_beside(
+    bus: Arc<dyn Bus>,
+    dir: &Path,
+    data: &Path,
+    method: b2b_pipeline::B2bMethod,
+    meddle: impl FnOnce(&AtomicBool) + Send,
+) -> Outcome {
+    let stop = Arc::new(AtomicBool::new(false));
+    let done = Arc::new(AtomicBool::new(false));
+    let fired = watchdog(
+        Arc::clone(&stop),
+        Arc::clone(&done),
+        Duration::from_secs(240),
+    );
+    let outcome = std::thread::scope(|s| {
+        let coordinator = s.spawn(|| {
+            let mut opts = coordinator_options(
+                &dir.join("coordinator"),
+                Some(vec!["robot1".into(), "robot2".into()]),
+            );
+            opts.method = method;
+            let out = run_on(&*bus, &opts, &stop);
+            done.store(true, Ordering::SeqCst);
+            out
+        });
+        s.spawn(|| meddle(done.as_ref()));
+        let agents: Vec<_> = ["robot1", "robot2"]
+            .into_iter()
+            .map(|robot| {
+                let bus = Arc::clone(&bus);
+                let state = dir.join(robot);
+                let stop = &*stop;
+                s.spawn(move || {
+                    // The default wait: agents must not need it.
+                    replay_agent_of(bus, data, robot, &state, Duration::from_secs(600), stop)
+                })
+            })
+            .collect();
+        let c = coordinator.join().unwrap();
+        // The agents end at once on the coordinator's answer; past this the
+        // watchdog stops them.
+        let agents = agents.into_iter().map(|a| a.join().unwrap()).collect();
+        done.store(true, Ordering::SeqCst);
+        (c, agents)
+    });
+    assert!(
+        !fired.load(Ordering::SeqCst),
+        "the watchdog had to stop the run: it stalled"
+    );
+    outcome
+}
+
 /// The coordinator computes only once every robot's statuses echo its
-/// session: with robot2's echo removed it is still waiting when stopped at
-/// 6 s, although both agents finish within about two seconds (the test above).
+/// session: with robot2's echo removed it is still waiting after both agents
+/// have finished and robot2 has sent four more statuses since, and only the
+/// stop ends it. If the agents never finished, the test fails.
 #[test]
 fn the_coordinator_waits_for_every_robot_to_echo_its_session() {
     let dir = tempfile::tempdir().unwrap();
-    let bus = Arc::new(WithoutEcho {
-        inner: MemoryBus::new(),
-        robot: "robot2",
+    let bus = Arc::new(Tampered {
+        without_echo: Some("robot2"),
+        ..Default::default()
     });
-    let stop = Arc::new(AtomicBool::new(false));
-    let started = std::time::Instant::now();
-    {
-        let stop = Arc::clone(&stop);
-        std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_secs(6));
-            stop.store(true, Ordering::SeqCst);
-        });
-    }
-    let stop = &*stop;
-    let finished_at = std::thread::scope(|s| {
+    let statuses = bus.subscribe("b2b/agent/*/status").unwrap();
+    let stop = AtomicBool::new(false);
+    let agents_stop = AtomicBool::new(false);
+    std::thread::scope(|s| {
         let coordinator = s.spawn(|| {
             let order = Some(vec!["robot1".into(), "robot2".into()]);
-            let _ = run_on(
+            run_on(
                 &*bus,
                 &coordinator_options(&dir.path().join("coordinator"), order),
-                stop,
-            );
-            started.elapsed()
+                &stop,
+            )
         });
         for robot in ["robot1", "robot2"] {
             let bus: Arc<dyn Bus> = bus.clone();
             let state = dir.path().join(robot);
+            let agents_stop = &agents_stop;
             s.spawn(move || {
-                let _ = replay_agent(bus, robot, &state, Duration::from_secs(8), stop);
+                let _ = replay_agent(bus, robot, &state, Duration::from_secs(600), agents_stop);
             });
         }
-        coordinator.join().unwrap()
+        // Both agents finished, then four more of robot2's statuses.
+        let mut finished = std::collections::BTreeSet::new();
+        let mut after = 0;
+        while after < 4 {
+            let m = statuses
+                .recv_timeout(Duration::from_secs(120))
+                .unwrap()
+                .expect("the agents stopped sending statuses before both finished");
+            let e: Envelope<AgentStatus> = serde_json::from_slice(&m.payload).unwrap();
+            if finished.len() == 2 && e.robot == "robot2" {
+                after += 1;
+            }
+            if e.body.state == AgentState::Finished {
+                finished.insert(e.robot);
+            }
+            assert_ne!(e.body.state, AgentState::Failed, "{}", e.body.message);
+        }
+        assert!(
+            !coordinator.is_finished(),
+            "the coordinator solved without robot2 echoing its session"
+        );
+        stop.store(true, Ordering::SeqCst);
+        agents_stop.store(true, Ordering::SeqCst);
+        let _ = coordinator.join().unwrap();
     });
-    // Both agents finish in about a second (the test above); the coordinator
-    // waited for robot2's echo until the stop.
-    assert!(
-        finished_at >= Duration::from_secs(6),
-        "the coordinator solved after {finished_at:?} without robot2 echoing its session"
+}
+
+/// `dataset()` copied into `to`, robot1's flange positions moved by 5 cm in x.
+fn moved_copy(to: &Path) {
+    common::copy_dir(&dataset(), to);
+    let captures = to.join("robot1/captures.csv");
+    let text = std::fs::read_to_string(&captures).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let tx = header.iter().position(|h| *h == "tx").unwrap();
+    let mut out = header.join(",") + "\n";
+    for line in lines {
+        let mut cells: Vec<String> = line.split(',').map(str::to_owned).collect();
+        let v: f64 = cells[tx].parse().unwrap();
+        cells[tx] = format!("{:?}", v + 0.05);
+        out += &(cells.join(",") + "\n");
+    }
+    std::fs::write(&captures, out).unwrap();
+}
+
+/// An earlier run's captures (on data moved by 5 cm, in that run's session)
+/// replayed into a new run over and over: each is dropped as of another
+/// session, none counts as a conflict, and the run gives the offline result
+/// of its own data, which both agents receive.
+#[test]
+fn an_earlier_runs_captures_replayed_into_a_new_run_are_dropped() {
+    let dir = tempfile::tempdir().unwrap();
+    let moved = dir.path().join("moved");
+    moved_copy(&moved);
+    // The earlier run, recorded.
+    let earlier = Arc::new(MemoryBus::new());
+    let recorded = earlier.subscribe("b2b/agent/*/capture").unwrap();
+    let (first, _) = run_beside(
+        earlier.clone(),
+        &dir.path().join("earlier"),
+        &moved,
+        b2b_pipeline::B2bMethod::Board,
+        |_| {},
     );
+    first.unwrap();
+    let mut replay = Vec::new();
+    while let Some(m) = recorded.recv_timeout(Duration::from_millis(10)).unwrap() {
+        replay.push((m.key, m.payload));
+    }
+    assert!(replay.len() >= 24, "{} captures recorded", replay.len());
+
+    let bus = Arc::new(MemoryBus::new());
+    let (now, agents) = run_beside(
+        bus.clone(),
+        &dir.path().join("now"),
+        &dataset(),
+        b2b_pipeline::B2bMethod::Board,
+        |done| {
+            while !done.load(Ordering::SeqCst) {
+                for (key, payload) in &replay {
+                    bus.put(key, payload.clone()).unwrap();
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        },
+    );
+    let (result, counters) = now.unwrap();
+    assert_eq!(counters.conflicts, 0, "{counters:?}");
+    assert!(counters.stale >= replay.len(), "{counters:?}");
+    common::assert_same(
+        &result,
+        &common::offline_result_of(dir.path(), &dataset(), "board"),
+    );
+    for got in agents {
+        assert_eq!(got.unwrap().as_ref(), Some(&result));
+    }
+}
+
+/// A forged status "robot1 capturing, 999 published" with a huge sequence
+/// number, sent in this run's session, in none and in another, over and over
+/// from the start: the coordinator asks robot1's history a bounded number of
+/// times, believes no more than it serves, and gives the offline result once
+/// the agents finish.
+#[test]
+fn a_forged_status_count_neither_stalls_nor_floods_the_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = Arc::new(Tampered::default());
+    let sessions = bus.subscribe(&session_key()).unwrap();
+    let forger = Arc::clone(&bus);
+    let (now, agents) = run_beside(
+        bus.clone(),
+        dir.path(),
+        &dataset(),
+        b2b_pipeline::B2bMethod::Board,
+        move |done| {
+            let bus = forger;
+            let session = announced_session(&*sessions);
+            let key = "b2b/agent/robot1/status";
+            let forged = AgentStatus {
+                state: AgentState::Capturing,
+                good: 999,
+                rejected: 0,
+                published: 999,
+                rotation_diversity_deg: 90.0,
+                enough_data: true,
+                message: "forged".into(),
+            };
+            let other = "fedcba9876543210fedcba9876543210";
+            while !done.load(Ordering::SeqCst) {
+                for s in [Some(session.as_str()), None, Some(other)] {
+                    let e = Envelope::new("robot1", 1 << 50, forged.clone()).in_session(s);
+                    b2b_services::bus::publish(&*bus, key, &e).unwrap();
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        },
+    );
+    let (result, counters) = now.unwrap();
+    assert_eq!(counters.conflicts, 0);
+    common::assert_same(
+        &result,
+        &common::offline_result_of(dir.path(), &dataset(), "board"),
+    );
+    for got in agents {
+        assert_eq!(got.unwrap().as_ref(), Some(&result));
+    }
+    // The first catch-up, and per robot at most FRUITLESS_QUERIES in a row
+    // after each of its 12 captures arrived (what resets the count).
+    let queries = bus.queries.load(Ordering::SeqCst);
+    let bound = 1 + 2 * (12 + 1) * FRUITLESS_QUERIES as usize;
+    assert!(
+        queries <= bound,
+        "{queries} history queries (at most {bound})"
+    );
+}
+
+/// A solve that fails (the RGB-D method on captures without depth) is
+/// published in the run's session: each agent ends at once with the
+/// coordinator's reason instead of waiting out its 600 s.
+#[test]
+fn a_failed_solve_ends_the_agents_wait_with_its_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = Arc::new(MemoryBus::new());
+    let (now, agents) = run_beside(
+        bus,
+        dir.path(),
+        &dataset(),
+        b2b_pipeline::B2bMethod::Rgbd,
+        |_| {},
+    );
+    let reason = format!("{:#}", now.unwrap_err());
+    for got in agents {
+        let e = format!("{:#}", got.unwrap_err());
+        assert!(
+            e.starts_with("the coordinator's solve failed: ") && e.ends_with(&reason),
+            "{e} (the coordinator: {reason})"
+        );
+    }
 }

@@ -354,8 +354,12 @@ fn main() -> std::process::ExitCode {
             finish_recording(recorder);
             print_result(&result);
             println!(
-                "messages: {} accepted, {} duplicates dropped, {} conflicting captures (not used), {} rejected",
-                counters.accepted, counters.duplicates, counters.conflicts, counters.rejected
+                "messages: {} accepted, {} duplicates dropped, {} conflicting captures (not used), {} rejected, {} of another session or none (dropped)",
+                counters.accepted,
+                counters.duplicates,
+                counters.conflicts,
+                counters.rejected,
+                counters.stale
             );
             println!("wrote {}", out.display());
             Ok(())
