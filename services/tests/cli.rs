@@ -887,3 +887,121 @@ fn easy_handeye_samples_are_imported_and_calibrated() {
         "samples[0].robot",
     );
 }
+
+/// `calibrate` and `verify` end with their verdict against the tolerance: PASS
+/// on the committed set at the default (2 mm), FAIL with exit status 4 and the
+/// reason at a tolerance the result cannot meet (flag or environment); the
+/// verdict is in RESULT.json, which still conforms to the interface.
+#[test]
+fn calibrate_and_verify_end_with_a_verdict() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (ds, result, printout) = calibrate_bundled(tmp.path(), "sim-checkerboard-2x12");
+    let last = printout.lines().last().unwrap_or_default();
+    assert!(
+        last.starts_with("VERDICT: PASS (predicted p95 touch error ")
+            && last.ends_with("within the tolerance of 2.00 mm)"),
+        "{printout}"
+    );
+    let r: b2b_protocol::CalibrationResult =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    let v = r.verdict.expect("the verdict in RESULT.json");
+    assert!(
+        v.pass && v.tolerance_mm == 2.0 && v.reasons.is_empty(),
+        "{v:?}"
+    );
+    if let Ok(out) = Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/tools/check_result.py"))
+        .arg(&result)
+        .output()
+        && !String::from_utf8_lossy(&out.stderr).contains("numpy")
+    {
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stdout)
+        );
+    }
+    // A tolerance below the predicted p95: FAIL, exit status 4, the file written.
+    let strict = tmp.path().join("STRICT.json");
+    for (flag, env) in [(Some("0.1"), None), (None, Some("0.1"))] {
+        let mut cmd = coordinator();
+        cmd.args(["calibrate", "--dataset"])
+            .arg(&ds)
+            .arg("--out")
+            .arg(&strict)
+            .arg("--state-dir")
+            .arg(state_beside(&strict));
+        if let Some(t) = flag {
+            cmd.args(["--tolerance-mm", t]);
+        }
+        if let Some(t) = env {
+            cmd.env("B2B_TOLERANCE_MM", t);
+        }
+        let out = cmd.output().unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(out.status.code(), Some(4), "{stdout}");
+        let last = stdout.lines().last().unwrap_or_default();
+        assert!(
+            last.starts_with("VERDICT: FAIL predicted p95 touch error of T_base1_base2 ")
+                && last.ends_with("mm is above the tolerance of 0.10 mm"),
+            "{stdout}"
+        );
+        let r: b2b_protocol::CalibrationResult =
+            serde_json::from_str(&std::fs::read_to_string(&strict).unwrap()).unwrap();
+        assert!(!r.verdict.unwrap().pass);
+    }
+    fails_cleanly(
+        coordinator()
+            .args(["calibrate", "--dataset"])
+            .arg(&ds)
+            .arg("--out")
+            .arg(&strict)
+            .env("B2B_TOLERANCE_MM", "two"),
+        "B2B_TOLERANCE_MM",
+    );
+    // verify: the touches against the tolerance.
+    let json = tmp.path().join("VERIFY.json");
+    let verify = |tolerance: &str| {
+        coordinator()
+            .args([
+                "verify",
+                "--tip-sigma-mm",
+                "0.3",
+                "--tolerance-mm",
+                tolerance,
+            ])
+            .arg("--result")
+            .arg(&result)
+            .arg("--touch-points")
+            .arg(ds.join("touch_points.csv"))
+            .arg("--json")
+            .arg(&json)
+            .output()
+            .unwrap()
+    };
+    let out = verify("2");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}");
+    assert!(
+        stdout
+            .lines()
+            .last()
+            .unwrap_or_default()
+            .starts_with("VERDICT: PASS (touch error p95 "),
+        "{stdout}"
+    );
+    let out = verify("0.1");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(4), "{stdout}");
+    assert!(
+        stdout
+            .lines()
+            .last()
+            .unwrap_or_default()
+            .starts_with("VERDICT: FAIL the touches' p95 error "),
+        "{stdout}"
+    );
+    let v: b2b_protocol::VerifyReport =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(!v.verdict.unwrap().pass);
+}
