@@ -75,7 +75,12 @@ pub fn result_verdict(result: &CalibrationResult, tolerance_mm: f64) -> Verdict 
         result.predicted_touch_error_m.p95,
     )];
     let reference = result.reference.as_deref().unwrap_or("base1");
-    for (id, b) in &result.bases {
+    // The second robot's base repeats T_base1_base2.
+    for (id, b) in result
+        .bases
+        .iter()
+        .filter(|(_, b)| b.ref_from_base != result.base1_from_base2)
+    {
         predicted.push((format!("T_{reference}_{id}"), b.predicted_touch_error_m.p95));
     }
     for p in &result.pairs {

@@ -539,7 +539,7 @@ fn main() -> std::process::ExitCode {
             let verdict = verify_verdict(&report, &m, tolerance_mm);
             report.verdict = Some(verdict.clone());
             let line = verdict.line(&format!(
-                "touch error p95 {:.2} mm, the touches within the result's error model",
+                "touch error p95 {:.2} mm",
                 b2b_pipeline::causes::touch_p95_m(&m) * 1e3
             ));
             if let Some((a, b)) = pair {
