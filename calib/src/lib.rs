@@ -17,6 +17,8 @@
 //! - [`base_to_base`]: N robots as one problem, every base in the first robot's.
 //! - [`drift`]: the drift watch during the operation (a sequential test of
 //!   each observation against the result).
+//! - [`causes`]: checks that name a likely cause of wrong input (flange poses
+//!   inverted, a change mid-run, a board at another scale).
 //! - [`sanity`]: pre-fit checks that flange and board poses belong together
 //!   (quaternion order, units, mismatched rows), from invariants of AX = XB.
 //! - [`procrustes`]: Umeyama / Procrustes and RANSAC over it.
@@ -27,6 +29,7 @@
 
 pub mod base_to_base;
 pub mod camera;
+pub mod causes;
 pub mod degeneracy;
 pub mod drift;
 pub mod estimate;

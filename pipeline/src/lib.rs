@@ -49,6 +49,7 @@
 //!   so [`observe_capture`] keeps refusing symmetric boards (the vision crate's
 //!   [`VisionError::AmbiguousOrientation`]).
 
+pub mod causes;
 pub mod progress;
 pub mod rgbd;
 
@@ -109,6 +110,35 @@ pub enum PipelineError {
         /// The capture list at fault (`.../captures.csv`, or where the captures came from).
         captures: String,
         problem: CalibError,
+    },
+    /// One robot's flange poses fit far better inverted: written as
+    /// `T_flange_base` where `T_base_flange` belongs ([`causes::check_inverted_poses`]).
+    #[error(
+        "{captures}: {robot}'s poses look inverted (T_flange_base instead of T_base_flange): \
+         {evidence}. Write each row as the flange's pose in the base (or, if the camera stands \
+         still and the target rides on the flange, this is eye-to-hand data, which the service \
+         does not calibrate)"
+    )]
+    PosesInverted {
+        robot: String,
+        /// The capture list at fault.
+        captures: String,
+        /// The screw axes' fit as given and inverted.
+        evidence: String,
+    },
+    /// A multimarker file whose widths look like metres ([`causes::check_multimarker_units`]).
+    #[error(
+        "{}: marker {marker} (entry at line {line}) is {width_mm:.3} mm wide ({count} marker(s) \
+         under 1 mm): the widths look like metres; the file gives widths and translations in \
+         millimetres",
+        file.display()
+    )]
+    MarkerUnits {
+        file: PathBuf,
+        marker: usize,
+        line: usize,
+        width_mm: f64,
+        count: usize,
     },
     /// A robot without a `camera` block, in a command that cannot estimate one.
     #[error(
@@ -531,6 +561,7 @@ impl TargetSpec {
                 };
                 let config = MultimarkerConfig::load(&path)?;
                 config.check_dictionary(&dictionary)?;
+                causes::check_multimarker_units(&config, &path)?;
                 TargetSpec::Multimarker { config, dictionary }
             }
         };
@@ -1109,6 +1140,7 @@ pub fn screen_observations(
         }
     }
     let report = report.unwrap_or_else(|| unreachable!("at least one target is checked"));
+    causes::check_inverted_poses(obs, captures)?;
     let mut out = obs.clone();
     if !suspects.is_empty() {
         out.observations = obs
@@ -1223,7 +1255,7 @@ pub fn corner_reach(views: &[(String, BoardDetection)], width: u32, height: u32)
 /// [`initial_distortion_terms`]): views with too few corners are left out, and at
 /// most [`MAX_INITIAL_VIEWS`] are taken, spread over the views in order. `guess`
 /// gives the image size, and the start for a non-planar target.
-fn initial_intrinsics(
+pub(crate) fn initial_intrinsics(
     views: Vec<(String, BoardDetection)>,
     guess: &CameraModel,
 ) -> Result<(CameraModel, EstimatedIntrinsics), String> {
@@ -1310,7 +1342,7 @@ pub fn estimate_intrinsics_from_observations(
 }
 
 /// An observation's corners as a detection (labelled already: as published).
-fn published_detection(o: &Observation) -> BoardDetection {
+pub(crate) fn published_detection(o: &Observation) -> BoardDetection {
     BoardDetection {
         target_points: o.board.target_points.clone(),
         corner_ids: (0..o.board.pixels.len()).collect(),
@@ -1541,7 +1573,7 @@ fn options_for(options: &RefineOptions, robots: &[&RobotObservations]) -> Refine
 /// undecided captures of a symmetric target are rejected rather than the robot refused.
 const MIN_DECIDED_CAPTURES: usize = 3;
 
-fn capture_name(o: &Observation) -> String {
+pub(crate) fn capture_name(o: &Observation) -> String {
     match &o.image {
         Some(image) => format!("row {} ({image})", o.row),
         None => format!("row {}", o.row),
@@ -2339,12 +2371,20 @@ pub fn bases_and_cameras_from_observations(
             .map(|(o, c)| (o.robot.clone(), covariance6(c)))
             .collect(),
         warnings: Vec::new(),
+        findings: Vec::new(),
+        verdict: None,
     };
     let spread = SpreadCheck {
         factor: run.estimate.spread_factor,
         captures: result.captures.used.values().sum(),
         dims: run.estimate.covariance.nrows(),
     };
+    let mut result = result;
+    result.findings.extend(causes::intrinsics_findings(robots));
+    result
+        .findings
+        .extend(screened.iter().flat_map(causes::robot_findings));
+    result.findings.extend(causes::spread_finding(&spread));
     let cameras = robots
         .iter()
         .zip(run.estimate.cameras)
@@ -2588,6 +2628,7 @@ pub fn verify_pair(
             within_predicted_p95: m.within_predicted_p95,
             iso9283: repeated_locations(&a_from_b, touches)?,
             bound_check: Some(touch_bound_check(&m.bound_check)),
+            verdict: None,
         },
         m,
     ))

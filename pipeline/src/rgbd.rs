@@ -1090,6 +1090,8 @@ pub fn rgbd_from_views(
         pairs: Vec::new(),
         hand_eye_covariance: Default::default(),
         warnings: Vec::new(),
+        findings: Vec::new(),
+        verdict: None,
     };
     Ok(RgbdRun {
         result,

@@ -259,6 +259,61 @@ pub struct CalibrationResult {
     /// hand-eye that no longer matches its cart's history). Empty when none.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
+    /// What the checks of the input and of the fit found, each with its
+    /// evidence: a named likely cause (poses inverted, a change mid-run, a
+    /// board at another scale, intrinsics that do not fit, marker widths in
+    /// the wrong unit), or the covariance widened beyond chance. Empty when
+    /// none; older files have none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub findings: Vec<Finding>,
+    /// The verdict against the operator's tolerance (`--tolerance-mm`).
+    /// Older files have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verdict: Option<Verdict>,
+}
+
+/// Something the checks found ([`CalibrationResult::findings`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Finding {
+    /// What kind: `inverted_poses`, `change_point`, `board_scale`,
+    /// `intrinsics`, `multimarker_units`, `spread_beyond_chance`.
+    pub kind: String,
+    /// The robot it concerns, when one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robot: Option<String>,
+    /// The row of the robot's capture list it concerns, when one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub row: Option<usize>,
+    /// Whether it fails the verdict (a named cause of a wrong result), or
+    /// only informs (the reported uncertainty already holds it).
+    pub fails: bool,
+    /// The finding and its evidence, for an operator.
+    pub message: String,
+}
+
+/// A verdict against the tolerance the operation needs: the largest
+/// acceptable p95 touch error.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Verdict {
+    pub pass: bool,
+    /// The tolerance, mm.
+    pub tolerance_mm: f64,
+    /// Why it fails; empty when it passes.
+    pub reasons: Vec<String>,
+}
+
+impl Verdict {
+    /// The last line a command prints: `VERDICT: PASS ...` or `VERDICT: FAIL <why>`.
+    pub fn line(&self, what: &str) -> String {
+        if self.pass {
+            format!(
+                "VERDICT: PASS ({what} within the tolerance of {:.2} mm)",
+                self.tolerance_mm
+            )
+        } else {
+            format!("VERDICT: FAIL {}", self.reasons.join("; "))
+        }
+    }
 }
 
 /// One robot's base in the reference robot's base ([`CalibrationResult::bases`]).
@@ -368,6 +423,10 @@ pub struct VerifyReport {
     /// about it (against the tip noise). Absent in files of older versions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bound_check: Option<TouchBoundCheck>,
+    /// The verdict against the operator's tolerance (`--tolerance-mm`).
+    /// Absent in files of older versions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verdict: Option<Verdict>,
 }
 
 /// See [`VerifyReport::bound_check`].

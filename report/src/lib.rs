@@ -1208,6 +1208,60 @@ fn hand_eye_html(inputs: &ReportInputs) -> String {
     h
 }
 
+/// One verdict as a box: green PASS or red FAIL with its reasons.
+fn one_verdict_html(what: &str, v: &b2b_protocol::Verdict) -> String {
+    let (class, word) = if v.pass {
+        ("verdict pass", "PASS")
+    } else {
+        ("verdict fail", "FAIL")
+    };
+    let mut h = format!(
+        "<div class=\"{class}\"><h2>VERDICT: {word}</h2><p>{} against the tolerance of {} mm \
+         (p95 touch error)</p>",
+        escape(what),
+        escape(&format!("{:.2}", v.tolerance_mm))
+    );
+    if !v.reasons.is_empty() {
+        h.push_str("<ul>");
+        for r in &v.reasons {
+            let _ = write!(h, "<li>{}</li>", escape(r));
+        }
+        h.push_str("</ul>");
+    }
+    h.push_str("</div>\n");
+    h
+}
+
+/// The verdicts (the result's, and the verification's when given), first on
+/// the page, then what the checks found. A result of an older version has
+/// no verdict: said so.
+fn verdict_html(inputs: &ReportInputs) -> String {
+    let mut h = match &inputs.result.verdict {
+        Some(v) => one_verdict_html("The result", v),
+        None => "<div class=\"verdict none\"><h2>VERDICT: none</h2><p>This result has no \
+                 verdict (written by an older version): run coordinator calibrate or run \
+                 again.</p></div>\n"
+            .to_owned(),
+    };
+    if let Some(v) = inputs.verify.as_ref().and_then(|v| v.verdict.as_ref()) {
+        h.push_str(&one_verdict_html("The touch-point verification", v));
+    }
+    if !inputs.result.findings.is_empty() {
+        h.push_str("<div class=\"panel findings\"><h2>Findings</h2><ul>");
+        for f in &inputs.result.findings {
+            let _ = write!(
+                h,
+                "<li><b>{}{}</b>: {}</li>",
+                escape(&f.kind),
+                if f.fails { " (fails the verdict)" } else { "" },
+                escape(&f.message)
+            );
+        }
+        h.push_str("</ul></div>\n");
+    }
+    h
+}
+
 /// The result's warnings, in a red box at the top of the page.
 fn warnings_html(inputs: &ReportInputs) -> String {
     if inputs.result.warnings.is_empty() {
@@ -1334,6 +1388,9 @@ td:first-child,th:first-child{text-align:left}table.list td{text-align:left}\
 .small{font-size:12px;color:#555}.ok{color:#1d7a44;font-weight:bold}.warn{color:#b03a2e;font-weight:bold}\
 code{background:#eee;padding:0 3px}\
 .alert{background:#fdecea;border:2px solid #C0392B;border-radius:6px;padding:10px 14px;margin-bottom:18px;color:#7b1d14}\
+.verdict{border-radius:6px;padding:10px 14px;margin-bottom:14px}.verdict h2{margin:0 0 4px 0}\
+.verdict.pass{background:#eafaf1;border:2px solid #1E8449;color:#145a32}.verdict.fail{background:#fdecea;border:2px solid #C0392B;color:#7b1d14}\
+.verdict.none{background:#f4f6f6;border:2px solid #7f8c8d}.findings{margin-bottom:14px}\
 .alert h2{color:#C0392B}.alert li{font-size:15px;font-weight:bold;margin:4px 0}";
 
 fn card(key: &str, value: &str, sub: &str) -> String {
@@ -1554,7 +1611,7 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
     let html = format!(
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
          <title>{title}</title><style>{CSS}</style></head><body>\n\
-         <h1>{title}</h1><div class=\"src\">{sources}</div>\n\
+         <h1>{title}</h1>\n{verdict}<div class=\"src\">{sources}</div>\n\
          {warnings}\
          <div class=\"cards\">{cards}</div>\n\
          <div class=\"grid\">\n\
@@ -1569,6 +1626,7 @@ pub fn write_report(inputs: &ReportInputs, out_dir: &Path) -> Result<ReportFiles
         r.timings_ms.total,
         title = escape(&inputs.title),
         sources = escape(&sources),
+        verdict = verdict_html(inputs),
         warnings = warnings_html(inputs),
         numbers = numbers_html(inputs),
         verify = verify_html(inputs),

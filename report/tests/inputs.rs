@@ -284,3 +284,37 @@ fn the_touch_check_is_shown_and_checked() {
         "{msg}"
     );
 }
+
+/// The verdict comes first on the page (before the numbers and the
+/// warnings), with every reason, and the findings beside it; a result of an
+/// older version says it has none.
+#[test]
+fn the_verdict_and_the_findings_come_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut inputs = ReportInputs::from_files(&fixture("RESULT.json"), None).unwrap();
+    let html = std::fs::read_to_string(write_report(&inputs, dir.path()).unwrap().index).unwrap();
+    assert!(html.contains("VERDICT: none"), "{html}");
+    inputs.result.warnings = vec!["a warning".into()];
+    inputs.result.findings = vec![b2b_protocol::Finding {
+        kind: "change_point".into(),
+        robot: Some("robot1".into()),
+        row: Some(7),
+        fails: true,
+        message: "robot1's captures change at row 7 <of its list>".into(),
+    }];
+    inputs.result.verdict = Some(b2b_protocol::Verdict {
+        pass: false,
+        tolerance_mm: 2.0,
+        reasons: vec!["robot1's captures change at row 7 <of its list>".into()],
+    });
+    let html = std::fs::read_to_string(write_report(&inputs, dir.path()).unwrap().index).unwrap();
+    let at = |needle: &str| {
+        html.find(needle)
+            .unwrap_or_else(|| panic!("{needle} missing: {html}"))
+    };
+    assert!(at("VERDICT: FAIL") < at("a warning"));
+    assert!(at("VERDICT: FAIL") < at("<h2>base1_from_base2</h2>"));
+    assert!(at("VERDICT: FAIL") < at("Findings"));
+    assert!(html.contains("row 7 &lt;of its list&gt;"), "escaped");
+    assert!(html.contains("against the tolerance of 2.00 mm"));
+}

@@ -228,3 +228,14 @@ pub fn log_verification(
     }
     Ok(())
 }
+
+/// Logs a command's verdict (`result/verdict`; [`b2b_viz::Recorder::log_verdict`]);
+/// a viewer that went away is a warning, not a failed run.
+pub fn log_verdict(rec: &b2b_viz::Recorder, verdict: &b2b_protocol::Verdict, line: &str) {
+    if !rec.is_enabled() {
+        return;
+    }
+    if let Err(e) = rec.log_verdict(verdict, line) {
+        eprintln!("warning: rerun: {}", error_chain(&e));
+    }
+}

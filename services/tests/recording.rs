@@ -93,6 +93,7 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
     for wanted in [
         b2b_viz::paths::base(b2b_viz::Base::One),
         b2b_viz::paths::base(b2b_viz::Base::Two),
+        b2b_viz::paths::VERDICT.to_owned(),
     ] {
         assert!(
             has(&e, &wanted),
@@ -140,6 +141,10 @@ fn replay_calibration_and_verify_recordings_hold_the_dashboard_entities() {
     assert!(
         has(&e, b2b_viz::paths::TOUCHES),
         "touches missing from verify's recording: {e:?}"
+    );
+    assert!(
+        has(&e, b2b_viz::paths::VERDICT),
+        "the verdict missing from verify's recording: {e:?}"
     );
 }
 

@@ -51,7 +51,7 @@ use std::sync::Mutex;
 
 use b2b_calib::camera::CameraModel;
 use b2b_protocol::messages::{BoardObservation, Capture, Intrinsics};
-use b2b_protocol::{CalibrationResult, Covariance6, ProtocolError};
+use b2b_protocol::{CalibrationResult, Covariance6, ProtocolError, Verdict};
 use nalgebra::{
     Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Rotation3, UnitQuaternion, Vector3,
 };
@@ -142,6 +142,7 @@ pub mod paths {
     pub const TOUCH_ERROR_MM: &str = "metrics/touch_error_mm";
     pub const TOUCH_BOUND_MM: &str = "metrics/touch_bound95_mm";
     pub const SUMMARY: &str = "result/summary";
+    pub const VERDICT: &str = "result/verdict";
 
     pub fn base(b: Base) -> String {
         format!("world/{}", b.name())
@@ -693,6 +694,31 @@ impl Recorder {
         Ok(())
     }
 
+    /// A command's verdict against the tolerance (`result/verdict`): a
+    /// document headed `VERDICT: PASS` or `VERDICT: FAIL` with every reason,
+    /// and the same line in the text log (an error on FAIL).
+    pub fn log_verdict(&self, verdict: &Verdict, line: &str) -> Result<(), VizError> {
+        let mut doc = format!(
+            "# {line}\n\nTolerance (p95 touch error): {:.2} mm.\n",
+            verdict.tolerance_mm
+        );
+        for r in &verdict.reasons {
+            doc.push_str(&format!("\n- {r}"));
+        }
+        self.rec
+            .log_static(paths::VERDICT, &rerun::TextDocument::from_markdown(doc))?;
+        let level = if verdict.pass {
+            rerun::TextLogLevel::INFO
+        } else {
+            rerun::TextLogLevel::ERROR
+        };
+        self.rec.log(
+            paths::VERDICT,
+            &rerun::TextLog::new(line.to_owned()).with_level(level),
+        )?;
+        Ok(())
+    }
+
     /// Verify's touches: robot 1's tips in base 1 coloured by error against each
     /// touch's predicted 95% bound, the error vectors, and the errors on the
     /// `touch` timeline.
@@ -782,7 +808,22 @@ fn summary_markdown(result: &CalibrationResult, base1_from_base2: &Isometry3<f64
         .iter()
         .map(|(r, n)| format!("{r}: {n}"))
         .collect();
-    format!(
+    let mut head = String::new();
+    if let Some(v) = &result.verdict {
+        head.push_str(if v.pass {
+            "# VERDICT: PASS\n\n"
+        } else {
+            "# VERDICT: FAIL\n\n"
+        });
+        for r in &v.reasons {
+            head.push_str(&format!("- {r}\n"));
+        }
+        head.push('\n');
+    }
+    for f in &result.findings {
+        head.push_str(&format!("**Finding ({}):** {}\n\n", f.kind, f.message));
+    }
+    head + &format!(
         "# base1_from_base2 ({method})\n\n\
          | | x | y | z |\n|---|---|---|---|\n\
          | translation (mm) | {:.3} | {:.3} | {:.3} |\n\

@@ -108,6 +108,8 @@ fn result() -> CalibrationResult {
         pairs: Vec::new(),
         hand_eye_covariance: Default::default(),
         warnings: Vec::new(),
+        findings: Vec::new(),
+        verdict: None,
     }
 }
 

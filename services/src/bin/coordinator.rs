@@ -7,16 +7,19 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
+use b2b_pipeline::causes::{
+    DEFAULT_TOLERANCE_MM, FAIL_EXIT_CODE, TOLERANCE_ENV, result_verdict, verify_verdict,
+};
 use b2b_pipeline::rgbd::RgbdOptions;
 use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, pair_transform, verify_pair};
-use b2b_protocol::CalibrationResult;
+use b2b_protocol::{CalibrationResult, Verdict};
 use b2b_services::history;
 use b2b_services::outputs::{
     add_history, check_destinations, print_result, print_verification, refuse_output_over_input,
     report_inputs, result_paths, write_result,
 };
 use b2b_services::recording::{
-    RerunArgs, finish_recording, log_offline_calibration, log_result, log_verification,
+    RerunArgs, finish_recording, log_offline_calibration, log_result, log_verdict, log_verification,
 };
 use b2b_services::{
     RobotNoiseArgs, coordinator, init_logging, non_negative, read_json, robot_pair, run_main,
@@ -69,6 +72,8 @@ enum Command {
         #[command(flatten)]
         noise: RobotNoiseArgs,
         #[command(flatten)]
+        tolerance: ToleranceArgs,
+        #[command(flatten)]
         rerun: RerunArgs,
     },
     /// base1_from_base2 from a b2b-dataset/1 folder (never reads
@@ -105,6 +110,8 @@ enum Command {
         #[command(flatten)]
         noise: RobotNoiseArgs,
         #[command(flatten)]
+        tolerance: ToleranceArgs,
+        #[command(flatten)]
         rerun: RerunArgs,
     },
     /// Checks a result against pointer-tip touch pairs (touch_points.csv format).
@@ -127,6 +134,8 @@ enum Command {
         /// first two (T_base1_base2).
         #[arg(long, value_parser = robot_pair)]
         pair: Option<(String, String)>,
+        #[command(flatten)]
+        tolerance: ToleranceArgs,
         #[command(flatten)]
         rerun: RerunArgs,
     },
@@ -284,6 +293,86 @@ enum PkiCommand {
     },
 }
 
+/// The tolerance the verdict is against.
+#[derive(clap::Args, Debug, Clone)]
+struct ToleranceArgs {
+    /// The largest acceptable p95 touch error (mm). The command ends with the
+    /// line `VERDICT: PASS ...` when the result's predicted p95 touch error is
+    /// within it and no named cause of a wrong result was found (verify: when
+    /// the touches' p95 error is within it and the touches fit the result's
+    /// error model), else `VERDICT: FAIL <why>` and exit status 4; the
+    /// verdict is also in RESULT.json (`verdict`), the report and the
+    /// recording. Default: the environment variable B2B_TOLERANCE_MM, else
+    /// 2.0 mm: the second arm must place a needle, screw or instrument tip in
+    /// the first arm's frame within about 2 mm, the seed's published
+    /// base-to-base touch error (2.7 mm mean) would not reliably do that,
+    /// and the service aims for sub-millimetre results, so a p95 above 2 mm
+    /// says the captures or the set-up did not give what a surgical use
+    /// needs (docs/verdict.md).
+    #[arg(long, value_parser = b2b_services::positive)]
+    tolerance_mm: Option<f64>,
+}
+
+impl ToleranceArgs {
+    /// `--tolerance-mm`, else B2B_TOLERANCE_MM, else the default.
+    fn resolve(&self) -> anyhow::Result<f64> {
+        if let Some(t) = self.tolerance_mm {
+            return Ok(t);
+        }
+        match std::env::var(TOLERANCE_ENV) {
+            Ok(text) => {
+                let t: f64 = text.trim().parse().map_err(|_| {
+                    anyhow::anyhow!(
+                        "{TOLERANCE_ENV}={text:?}: expected a tolerance in mm, a number > 0"
+                    )
+                })?;
+                anyhow::ensure!(
+                    t.is_finite() && t > 0.0,
+                    "{TOLERANCE_ENV}={text:?}: expected a tolerance in mm, a number > 0"
+                );
+                Ok(t)
+            }
+            Err(std::env::VarError::NotPresent) => Ok(DEFAULT_TOLERANCE_MM),
+            Err(e) => Err(anyhow::anyhow!("{TOLERANCE_ENV}: {e}")),
+        }
+    }
+}
+
+/// Prints the verdict as the last line; FAIL ends the command with exit
+/// status [`FAIL_EXIT_CODE`].
+fn conclude(verdict: &Verdict, line: &str) -> anyhow::Result<()> {
+    println!("{line}");
+    if verdict.pass {
+        Ok(())
+    } else {
+        Err(b2b_services::ExitStatus {
+            code: FAIL_EXIT_CODE,
+            message: format!("verdict FAIL (exit status {FAIL_EXIT_CODE})"),
+        }
+        .into())
+    }
+}
+
+/// The verdict line of a result.
+fn result_line(result: &CalibrationResult, verdict: &Verdict) -> String {
+    verdict.line(&format!(
+        "predicted p95 touch error {:.2} mm",
+        result.predicted_touch_error_m.p95 * 1e3
+    ))
+}
+
+/// Prints the result's findings (the failing ones are the verdict's reasons
+/// too), but those of kind `skip` (printed already).
+fn print_findings(result: &CalibrationResult, skip: Option<&str>) {
+    for f in result
+        .findings
+        .iter()
+        .filter(|f| Some(f.kind.as_str()) != skip)
+    {
+        println!("FINDING ({}): {}", f.kind, f.message);
+    }
+}
+
 fn print_issued(issued: &b2b_services::pki::Issued, dir: &std::path::Path) {
     for (who, config) in &issued.configs {
         println!("{who}: --zenoh {}", config.display());
@@ -325,9 +414,11 @@ fn main() -> std::process::ExitCode {
             out,
             refine_intrinsics,
             noise,
+            tolerance,
             rerun,
         } => {
             check_result_destinations(&out)?;
+            let tolerance_mm = tolerance.resolve()?;
             let recorder = rerun.recorder("b2b-coordinator")?;
             let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
             check_refine_intrinsics(refine_intrinsics, method)?;
@@ -345,14 +436,19 @@ fn main() -> std::process::ExitCode {
             };
             let (mut result, counters) = coordinator::run(&opts, &stop_flag())?;
             history::check_before_writing(&state_dir, &mut result);
+            let verdict = result_verdict(&result, tolerance_mm);
+            result.verdict = Some(verdict.clone());
+            let line = result_line(&result, &verdict);
             write_result(&out, &result).context("writing the result")?;
             let order = robots
                 .clone()
                 .unwrap_or_else(|| history::robots_of(&result));
             history::record_after_writing(&state_dir, "run", &result, &out, &order);
             log_result(&recorder, &result, robots.as_deref());
+            log_verdict(&recorder, &verdict, &line);
             finish_recording(recorder);
             print_result(&result);
+            print_findings(&result, None);
             println!(
                 "messages: {} accepted, {} duplicates dropped, {} conflicting captures (not used), {} rejected, {} of another session or none (dropped)",
                 counters.accepted,
@@ -362,7 +458,7 @@ fn main() -> std::process::ExitCode {
                 counters.stale
             );
             println!("wrote {}", out.display());
-            Ok(())
+            conclude(&verdict, &line)
         }
         Command::Calibrate {
             dataset,
@@ -372,11 +468,13 @@ fn main() -> std::process::ExitCode {
             out,
             state_dir,
             noise,
+            tolerance,
             rerun,
         } => {
             let inputs: Vec<&std::path::Path> = hand_eye.iter().map(PathBuf::as_path).collect();
             refuse_output_over_input("--out", &out, Some(&dataset), &inputs)?;
             check_result_destinations(&out)?;
+            let tolerance_mm = tolerance.resolve()?;
             let recorder = rerun.recorder("b2b-coordinator")?;
             b2b_services::show_pipeline_progress();
             let ds = load_dataset(&dataset)?;
@@ -390,7 +488,8 @@ fn main() -> std::process::ExitCode {
                     refine_intrinsics,
                     ..noise.options()
                 };
-                let run = base_to_base_run(&ds, method, &options)?;
+                let mut run = base_to_base_run(&ds, method, &options)?;
+                run.result.verdict = Some(result_verdict(&run.result, tolerance_mm));
                 log_offline_calibration(&recorder, &ds, &run);
                 (run.result, run.cameras, run.spread)
             } else {
@@ -403,12 +502,16 @@ fn main() -> std::process::ExitCode {
                 (result, vec![], None)
             };
             history::check_before_writing(&state_dir, &mut result);
+            let verdict = result_verdict(&result, tolerance_mm);
+            result.verdict = Some(verdict.clone());
+            let line = result_line(&result, &verdict);
             write_result(&out, &result).context("writing the result")?;
             let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
             history::record_after_writing(&state_dir, "calibrate", &result, &out, &order);
             if !hand_eye.is_empty() {
                 log_result(&recorder, &result, Some(&order));
             }
+            log_verdict(&recorder, &verdict, &line);
             finish_recording(recorder);
             print_result(&result);
             for c in cameras
@@ -429,8 +532,9 @@ fn main() -> std::process::ExitCode {
             if let Some(spread) = spread {
                 println!("{}", spread.describe());
             }
+            print_findings(&result, Some(b2b_pipeline::causes::kind::SPREAD));
             println!("wrote {}", out.display());
-            Ok(())
+            conclude(&verdict, &line)
         }
         Command::Verify {
             result,
@@ -438,19 +542,21 @@ fn main() -> std::process::ExitCode {
             json,
             tip_sigma_mm,
             pair,
+            tolerance,
             rerun,
         } => {
             if let Some(path) = &json {
                 refuse_output_over_input("--json", path, None, &[&result, &touch_points])?;
                 check_destinations(&[path])?;
             }
+            let tolerance_mm = tolerance.resolve()?;
             let recorder = rerun.recorder("b2b-verify")?;
             let r: CalibrationResult = read_json(&result)?;
             r.validate().with_context(|| result.display().to_string())?;
             let touches = b2b_dataset::read_touch_points(&touch_points)?;
             let pair = pair.as_ref().map(|(a, b)| (a.as_str(), b.as_str()));
             // The file at fault: the touches' problems are the touch file's.
-            let (report, m) =
+            let (mut report, m) =
                 verify_pair(&r, pair, &touches, tip_sigma_mm * 1e-3).map_err(|e| {
                     let file = match e {
                         b2b_pipeline::PipelineError::Touches { .. } => &touch_points,
@@ -458,6 +564,12 @@ fn main() -> std::process::ExitCode {
                     };
                     anyhow::Error::new(e).context(file.display().to_string())
                 })?;
+            let verdict = verify_verdict(&report, &m, tolerance_mm);
+            report.verdict = Some(verdict.clone());
+            let line = verdict.line(&format!(
+                "touch error p95 {:.2} mm",
+                b2b_pipeline::causes::touch_p95_m(&m) * 1e3
+            ));
             if let Some((a, b)) = pair {
                 println!(
                     "robot {b}'s base in robot {a}'s, against {}",
@@ -474,8 +586,9 @@ fn main() -> std::process::ExitCode {
                 None => r.base1_from_base2.to_isometry("T_base1_base2")?,
             };
             log_verification(&recorder, &r, &a_from_b, &touches, &m)?;
+            log_verdict(&recorder, &verdict, &line);
             finish_recording(recorder);
-            Ok(())
+            conclude(&verdict, &line)
         }
         Command::Import {
             easy_handeye,
