@@ -1090,6 +1090,7 @@ pub fn rgbd_from_views(
         pairs: Vec::new(),
         hand_eye_covariance: Default::default(),
         warnings: Vec::new(),
+        model_selection: None,
     };
     Ok(RgbdRun {
         result,

@@ -27,6 +27,10 @@ struct Figures {
     best: &'static str,
     predicted_p95_mm: f64,
     true_p95_mm: f64,
+    /// The model selection's choice and the held-out RMS (px) of it and Park.
+    chosen: String,
+    held_out_chosen_px: f64,
+    held_out_park_px: f64,
 }
 
 impl Figures {
@@ -46,6 +50,7 @@ fn within(what: &str, value: f64, expected: f64) {
 fn measure(name: &str, s: &Split) -> (Figures, CalibrationRun) {
     let run = base_to_base_run(&s.dataset, B2bMethod::Board, &RefineOptions::default()).unwrap();
     let r = &run.result;
+    let selection = r.model_selection.clone().expect("cross-validated");
     let truth = s.base1_from_base2;
     let flanges: Vec<Point3<f64>> = run.observations[0]
         .observations
@@ -112,7 +117,12 @@ fn measure(name: &str, s: &Split) -> (Figures, CalibrationRun) {
         best,
         predicted_p95_mm: predicted_p95 * 1e3,
         true_p95_mm: p95(&ours) * 1e3,
+        chosen: selection.chosen.clone(),
+        held_out_chosen_px: selection.held_out_px[&selection.chosen],
+        held_out_park_px: selection.held_out_px["park"],
     };
+    // Never worse than Park on the evidence it computes.
+    assert!(f.held_out_chosen_px <= f.held_out_park_px, "{selection:?}");
     eprintln!(
         "{name}: used {:?}; ours {:.3} mm, park {:.3} mm, best closed form {:.3} mm ({}); \
          predicted p95 {:.3} mm / true p95 {:.3} mm = {:.2}x",
@@ -133,6 +143,7 @@ fn measure(name: &str, s: &Split) -> (Figures, CalibrationRun) {
             .collect::<Vec<_>>()
             .join(", ")
     );
+    eprintln!("  model selection: {selection:?}");
     for c in &run.cameras {
         eprintln!("  {}", c.describe());
         if let Some(n) = &c.pose_error {
@@ -151,7 +162,12 @@ fn tabb_denso_split() {
     // docs/accuracy.md
     within("ours", f.ours_mm, 4.61);
     within("park, refined cameras", f.park_refined_camera_mm, 6.91);
-    within("predicted / true p95", f.ratio(), 2.35);
+    within("predicted / true p95", f.ratio(), 1.26);
+    // The held-out captures keep the default: the refined shapes predict them
+    // at 2.04-2.08 px RMS, the closed forms at 8.0 px and worse.
+    assert_eq!(f.chosen, "refined");
+    within("held-out, refined", f.held_out_chosen_px, 2.04);
+    within("held-out, park", f.held_out_park_px, 8.62);
 }
 
 /// ViSP's Franka recording (8 captures, intrinsics given), 4 per pseudo robot.
@@ -160,7 +176,13 @@ fn visp_franka_split() {
     let s = split("visp-franka-eye-in-hand", &chosen_base1_from_base2());
     let (f, _) = measure("visp-franka-eye-in-hand", &s);
     // docs/accuracy.md
-    within("ours", f.ours_mm, 26.7);
+    within("ours", f.ours_mm, 3.04);
     within("park", f.park_mm, 3.09);
-    within("predicted / true p95", f.ratio(), 0.97);
+    within("predicted / true p95", f.ratio(), 9.6);
+    // Three captures per robot in each fold's fit: the refinement's noise model
+    // has too little to go on (29.5 px and worse), the closed forms predict the
+    // held-out captures better and Daniilidis best.
+    assert_eq!(f.chosen, "daniilidis");
+    within("held-out, chosen", f.held_out_chosen_px, 14.4);
+    within("held-out, park", f.held_out_park_px, 14.9);
 }

@@ -108,6 +108,7 @@ fn result() -> CalibrationResult {
         pairs: Vec::new(),
         hand_eye_covariance: Default::default(),
         warnings: Vec::new(),
+        model_selection: None,
     }
 }
 
