@@ -186,3 +186,63 @@ fn visp_franka_split() {
     within("held-out, chosen", f.held_out_chosen_px, 14.4);
     within("held-out, park", f.held_out_park_px, 14.9);
 }
+
+/// The bound's ratio on the rendered sets (their truth from
+/// `ground_truth.json`): predicted p95 over the true p95 at 27 points of a
+/// 0.3 m cube about robot 1's mean flange position.
+#[test]
+fn rendered_sets_bound_ratio() {
+    use b2b_dataset::{Dataset, load_ground_truth};
+    // docs/accuracy.md: (set, method, predicted / true p95)
+    for (name, method, expected) in [
+        ("sim-checkerboard-2x12", B2bMethod::Board, 1.98),
+        ("sim-multimarker-4x3-2x10", B2bMethod::Multimarker, 0.85),
+        ("sim-multimarker-corner-2x10", B2bMethod::Multimarker, 1.29),
+    ] {
+        let dir = common::bundled(name);
+        let ds = Dataset::load(&dir).unwrap();
+        let truth = load_ground_truth(&dir)
+            .unwrap()
+            .unwrap()
+            .base1_from_base2
+            .unwrap();
+        let run = base_to_base_run(&ds, method, &RefineOptions::default()).unwrap();
+        let r = &run.result;
+        let est: Iso3 = r.base1_from_base2.to_isometry("T").unwrap();
+        // A 0.3 m cube about robot 1's mean flange position.
+        let flanges: Vec<Point3<f64>> = run.observations[0]
+            .observations
+            .iter()
+            .map(|o| Point3::from(o.board.base_from_flange.translation.vector))
+            .collect();
+        let mean_flange = Point3::from(
+            flanges
+                .iter()
+                .fold(nalgebra::Vector3::zeros(), |a, p| a + p.coords)
+                / flanges.len() as f64,
+        );
+        let points: Vec<Point3<f64>> = (0..27)
+            .map(|k| {
+                let o =
+                    nalgebra::Vector3::new((k % 3) as f64, ((k / 3) % 3) as f64, (k / 9) as f64)
+                        * 0.15
+                        - nalgebra::Vector3::repeat(0.15);
+                mean_flange + o
+            })
+            .collect();
+        let errors = touch_errors(&est, &truth, &points);
+        let cov = nalgebra::Matrix6::from_fn(|i, j| r.covariance[i][j]);
+        let (_, predicted) = predicted_error(&cov, &points, 0.0);
+        let ratio = predicted / p95(&errors);
+        eprintln!(
+            "{name}: {:.3} mm mean, predicted p95 {:.3} mm / true p95 {:.3} mm = {ratio:.2}x; {:?}",
+            mean(&errors) * 1e3,
+            predicted * 1e3,
+            p95(&errors) * 1e3,
+            r.model_selection
+                .as_ref()
+                .map(|m| (&m.chosen, m.spread_scale))
+        );
+        within(name, ratio, expected);
+    }
+}
