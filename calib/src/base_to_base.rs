@@ -270,6 +270,28 @@ pub fn refine_bases(
     initial: &BasesInitial,
     options: &RefineOptions,
 ) -> Result<BasesEstimate, CalibError> {
+    bases_problem(cameras, captures, initial, options, true)
+}
+
+/// The joint problem of [`refine_bases`] evaluated at `initial` without moving
+/// it (a closed form's estimate): the noise model from its residuals, the
+/// covariance of the reprojection problem there, every capture's fit.
+pub fn evaluate_bases(
+    cameras: &[&CameraModel],
+    captures: &[&[BoardCapture]],
+    initial: &BasesInitial,
+    options: &RefineOptions,
+) -> Result<BasesEstimate, CalibError> {
+    bases_problem(cameras, captures, initial, options, false)
+}
+
+fn bases_problem(
+    cameras: &[&CameraModel],
+    captures: &[&[BoardCapture]],
+    initial: &BasesInitial,
+    options: &RefineOptions,
+    optimise: bool,
+) -> Result<BasesEstimate, CalibError> {
     let n = captures.len();
     if n < 2 {
         return Err(CalibError::TooFewRobots { got: n, need: 2 });
@@ -341,7 +363,7 @@ pub fn refine_bases(
         cameras.iter().map(|c| (*c).clone()).collect(),
         models,
         options,
-        true,
+        optimise,
     )?;
     let block =
         |b: usize| -> Matrix6<f64> { sol.covariance.fixed_view::<6, 6>(6 * b, 6 * b).into() };

@@ -173,16 +173,16 @@ pub fn seed_hand_eye(
 
 /// A robot's seed over the captures of every target it saw.
 #[derive(Debug, Clone)]
-struct RobotSeed {
-    flange_from_camera: Iso3,
+pub(crate) struct RobotSeed {
+    pub(crate) flange_from_camera: Iso3,
     /// Per target of the problem, where the robot's kept captures put it.
-    base_from_target: Vec<Option<Iso3>>,
-    rejections: Vec<Option<Rejection>>,
+    pub(crate) base_from_target: Vec<Option<Iso3>>,
+    pub(crate) rejections: Vec<Option<Rejection>>,
 }
 
 /// [`seed_hand_eye`] on each target's captures of one robot: the hand-eye of
 /// the target seen most, each target's pose given that hand-eye.
-fn seed_robot(
+pub(crate) fn seed_robot(
     robot: &RobotCaptures<'_>,
     targets: usize,
     options: &RefineOptions,
@@ -261,7 +261,7 @@ fn seed_robot(
 /// The joint fit's start from the robots' seeds: each target placed by a robot
 /// already placed that sees it, each robot by a target already placed, from
 /// robot 0 outwards.
-fn link_seeds(seeds: &[RobotSeed], targets: usize) -> Result<BasesInitial, CalibError> {
+pub(crate) fn link_seeds(seeds: &[RobotSeed], targets: usize) -> Result<BasesInitial, CalibError> {
     let n = seeds.len();
     let mut bases: Vec<Option<Iso3>> = vec![None; n];
     let mut placed: Vec<Option<Iso3>> = vec![None; targets];
@@ -315,7 +315,7 @@ pub struct HandEyeRun {
 }
 
 /// The items whose rejection is `None`.
-fn kept<T: Clone, R>(items: &[T], rejections: &[Option<R>]) -> Vec<T> {
+pub(crate) fn kept<T: Clone, R>(items: &[T], rejections: &[Option<R>]) -> Vec<T> {
     items
         .iter()
         .zip(rejections)
@@ -515,7 +515,7 @@ pub struct SplitCheck {
 /// base by the same `δ0` (every block, off-diagonal ones included); one of
 /// robot `r` moves its own base by `-Ad(ref_from_base_r) δr`. With two robots:
 /// `Σ0 + Ad(Z) Σ1 Ad(Z)ᵀ` on `base1_from_base2`.
-fn common_mode(
+pub(crate) fn common_mode(
     estimate: &BasesEstimate,
     captures: &[&[BoardCapture]],
     systematic: &crate::refine::RobotNoise,

@@ -15,6 +15,9 @@
 //! - [`refine`]: the joint reprojection-error refinement of one robot, seeded by a
 //!   closed form, with robust loss, MAD outlier rejection and covariance.
 //! - [`base_to_base`]: N robots as one problem, every base in the first robot's.
+//! - [`select`]: the estimator chosen by cross-validation over captures
+//!   (refined noise shapes and closed forms), and the bound scaled to the
+//!   folds' scatter.
 //! - [`drift`]: the drift watch during the operation (a sequential test of
 //!   each observation against the result).
 //! - [`causes`]: checks that name a likely cause of wrong input (flange poses
@@ -39,6 +42,7 @@ pub mod pose;
 pub mod procrustes;
 pub mod refine;
 pub mod sanity;
+pub mod select;
 pub mod symmetry;
 pub mod synth;
 

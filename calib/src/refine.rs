@@ -118,6 +118,9 @@ pub enum NoiseModel {
     /// [`NoiseFrame`] the rotation and translation variances by maximum
     /// likelihood, and the frame whose likelihood is higher.
     Estimated,
+    /// Estimated from the residuals as [`NoiseModel::Estimated`], in this one
+    /// shape (the model selection's candidates, [`crate::select`]).
+    EstimatedShape(NoiseShape),
     /// The configured [`RobotNoise`], isotropic in the given frame, not estimated.
     Fixed(NoiseFrame),
     /// Known covariances of the left perturbation of each capture's
@@ -1007,7 +1010,7 @@ impl Engine {
                     FittedNoise::new(NoiseShape::Given, vec![], sigma2.sqrt())
                 }
                 NoiseModel::Fixed(frame) => FittedNoise::isotropic(*frame, rn, sigma2.sqrt()),
-                NoiseModel::Estimated => {
+                NoiseModel::Estimated | NoiseModel::EstimatedShape(_) => {
                     // The unknowns absorb part of the pose subspaces' energy: a
                     // robot's share of them is put back (restricted likelihood).
                     let share = self.n_params() as f64 * mine.len() as f64 / n_captures as f64;
@@ -1021,11 +1024,14 @@ impl Engine {
                     // that a richer shape must earn its parameters.
                     let penalty = 0.5 * dims.max(2.0).ln();
                     let start = rn.covariance();
-                    let shapes = [
-                        NoiseShape::Isotropic(NoiseFrame::Base),
-                        NoiseShape::Isotropic(NoiseFrame::Flange),
-                        NoiseShape::TwoCentres,
-                    ];
+                    let shapes = match &options.noise {
+                        NoiseModel::EstimatedShape(shape) => vec![*shape],
+                        _ => vec![
+                            NoiseShape::Isotropic(NoiseFrame::Base),
+                            NoiseShape::Isotropic(NoiseFrame::Flange),
+                            NoiseShape::TwoCentres,
+                        ],
+                    };
                     let mut best: Option<(f64, FittedNoise)> = None;
                     for shape in shapes {
                         // Each shape's EM starts where it ended in the previous
@@ -1510,7 +1516,9 @@ pub(crate) fn solve(
     }
     let first = RefineOptions {
         noise: match &options.noise {
-            NoiseModel::Estimated => NoiseModel::Fixed(NoiseFrame::Base),
+            NoiseModel::Estimated | NoiseModel::EstimatedShape(_) => {
+                NoiseModel::Fixed(NoiseFrame::Base)
+            }
             other => other.clone(),
         },
         ..options.clone()

@@ -52,15 +52,14 @@
 pub mod causes;
 pub mod progress;
 pub mod rgbd;
+mod select;
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::time::Instant;
 
 use b2b_calib::camera::CameraModel;
-use b2b_calib::estimate::{
-    Rejection, RobotCaptures, SplitCheck, estimate_bases, estimate_hand_eye,
-};
+use b2b_calib::estimate::{Rejection, RobotCaptures, SplitCheck, estimate_hand_eye};
 use b2b_calib::handeye::{self, HandEyeMethod, RobotWorldMethod};
 use b2b_calib::metrics::{TouchMetrics, predicted_error, verify_touches, workspace_points};
 use b2b_calib::refine::{BoardCapture, HandEyeEstimate, RefineOptions, evaluate_hand_eye};
@@ -2235,13 +2234,17 @@ pub fn bases_and_cameras_from_observations(
     let ids: Vec<&str> = screened.iter().map(|o| o.robot.as_str()).collect();
     let all = ids.join("+");
     let capture_refs: Vec<&RobotCaptures<'_>> = captures.iter().collect();
-    let run = estimate_bases(&capture_refs, options).map_err(|e| match e {
-        CalibError::Disconnected { cut_off } => PipelineError::Disconnected {
-            reference: ids[0].to_owned(),
-            cut_off: cut_off.iter().map(|r| ids[*r].to_owned()).collect(),
+    let selected = b2b_calib::select::estimate_bases_selected(&capture_refs, options).map_err(
+        |e| match e {
+            CalibError::Disconnected { cut_off } => PipelineError::Disconnected {
+                reference: ids[0].to_owned(),
+                cut_off: cut_off.iter().map(|r| ids[*r].to_owned()).collect(),
+            },
+            e => calib(&all)(e),
         },
-        e => calib(&all)(e),
-    })?;
+    )?;
+    let model_selection = select::model_selection(&selected);
+    let run = selected.run;
     for (k, split) in run.splits.iter().enumerate() {
         if let Some(split) = split.filter(SplitCheck::beyond_chance) {
             let what = if k == 0 {
@@ -2373,6 +2376,7 @@ pub fn bases_and_cameras_from_observations(
         warnings: Vec::new(),
         findings: Vec::new(),
         verdict: None,
+        model_selection,
     };
     let spread = SpreadCheck {
         factor: run.estimate.spread_factor,

@@ -1092,6 +1092,7 @@ pub fn rgbd_from_views(
         warnings: Vec::new(),
         findings: Vec::new(),
         verdict: None,
+        model_selection: None,
     };
     Ok(RgbdRun {
         result,

@@ -209,10 +209,11 @@ fn slightly_wrong_intrinsics_are_refined() {
         let est = run.result.base1_from_base2.to_isometry("T").unwrap();
         let (dt, da) = pose_distance(&est, &truth);
         eprintln!(
-            "{name}: {:.3} mm, {:.4} deg from the truth; solve {:.0} ms",
+            "{name}: {:.3} mm, {:.4} deg from the truth; solve {:.0} ms; chosen {:?}",
             dt * 1e3,
             da.to_degrees(),
-            run.result.timings_ms.solve
+            run.result.timings_ms.solve,
+            run.result.model_selection
         );
         (dt, da, run)
     };
@@ -459,8 +460,10 @@ fn estimating_intrinsics_on_2x30x54_is_accurate_and_cheap() {
         da_e < 2.0 * da_g.max(0.005f64.to_radians()),
         "{da_e} vs {da_g}"
     );
-    // Timing on a shared machine: only a loose guard here.
-    assert!(extra < 2000.0, "{extra} ms");
+    // Timing on a shared machine: only a loose guard here. The model
+    // selection's folds refine the intrinsics too (b2b_calib::select), which
+    // about doubles the solve's extra time.
+    assert!(extra < 4000.0, "{extra} ms");
 }
 
 /// The multimarker method without intrinsics: the planar 4x3 sheet (Zhang's

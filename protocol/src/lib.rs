@@ -270,6 +270,11 @@ pub struct CalibrationResult {
     /// Older files have none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub verdict: Option<Verdict>,
+    /// How the estimator was chosen: by cross-validation over the captures
+    /// (`b2b_calib::select`). Older files, the RGB-D method and problems that
+    /// were not cross-validated (several targets, too few captures) have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_selection: Option<ModelSelection>,
 }
 
 /// Something the checks found ([`CalibrationResult::findings`]).
@@ -314,6 +319,23 @@ impl Verdict {
             format!("VERDICT: FAIL {}", self.reasons.join("; "))
         }
     }
+
+/// Which estimator the held-out captures chose ([`CalibrationResult::model_selection`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelSelection {
+    /// The candidate chosen: `refined/<noise shape>` or a closed form's name.
+    pub chosen: String,
+    /// Candidate to the RMS (px) of the held-out captures' corners about where
+    /// its fits without them put them; a candidate whose fit failed on a fold
+    /// is absent.
+    pub held_out_px: BTreeMap<String, f64>,
+    /// Folds of consecutive captures per robot.
+    pub folds: usize,
+    /// The factor the chosen estimate's covariance was scaled by so that it
+    /// holds the scatter of the fits without each fold (absent when it could
+    /// not be computed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spread_scale: Option<f64>,
 }
 
 /// One robot's base in the reference robot's base ([`CalibrationResult::bases`]).

@@ -395,6 +395,9 @@ pub fn print_result(r: &CalibrationResult) {
             rej.reason
         );
     }
+    if let Some(m) = &r.model_selection {
+        print_model_selection(m);
+    }
     print_pose("T_base1_base2", &r.base1_from_base2);
     print_sigma(&r.covariance);
     print_predicted(&r.predicted_touch_error_m);
@@ -417,6 +420,25 @@ pub fn print_result(r: &CalibrationResult) {
         r.timings_ms.detect, r.timings_ms.solve, r.timings_ms.total
     );
     print_warnings(r);
+}
+
+/// Which estimator the held-out captures chose, and each candidate's figure.
+fn print_model_selection(m: &b2b_protocol::ModelSelection) {
+    let mut figures: Vec<(&String, &f64)> = m.held_out_px.iter().collect();
+    figures.sort_by(|a, b| a.1.total_cmp(b.1));
+    println!(
+        "estimator: {} (held-out captures' corners, {}-fold cross-validation, RMS px: {}){}",
+        m.chosen,
+        m.folds,
+        figures
+            .iter()
+            .map(|(c, v)| format!("{c} {v:.3}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+        m.spread_scale.map_or(String::new(), |s| format!(
+            "; covariance scaled by {s:.2} to the folds' scatter"
+        ))
+    );
 }
 
 fn print_predicted(p: &b2b_protocol::PredictedError) {

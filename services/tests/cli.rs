@@ -202,6 +202,21 @@ fn calibrate_then_verify_writes_conforming_files() {
     let factor: f64 = line.split("x in σ").next().unwrap().parse().unwrap();
     assert!((1.0..1.07 * 1.5).contains(&factor), "{line}");
     assert!(line.contains("about 1.51x with 24 captures"), "{line}");
+    // The model selection: the default kept (the rendered arms err in shapes
+    // the noise model has), every candidate's held-out figure printed.
+    let line = printout
+        .lines()
+        .find(|l| l.starts_with("estimator: "))
+        .unwrap_or_else(|| panic!("no estimator line: {printout}"));
+    assert!(
+        line.starts_with("estimator: refined (")
+            && line.contains("park ")
+            && line.contains("shah "),
+        "{line}"
+    );
+    let written: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    assert_eq!(written["model_selection"]["chosen"], "refined", "{written}");
     let json = tmp.path().join("VERIFY.json");
     // `coordinator verify` of the result against the set's touches, with
     // `tip` (mm) given, expecting exit status `code`; its printout.

@@ -110,6 +110,7 @@ fn result() -> CalibrationResult {
         warnings: Vec::new(),
         findings: Vec::new(),
         verdict: None,
+        model_selection: None,
     }
 }
 

@@ -1,0 +1,248 @@
+//! The estimator on real arms: one arm's real captures split into two pseudo
+//! robots (even and odd rows), the second base moved by a chosen transform, so
+//! `base1_from_base2` is exact while the images and the arm's errors stay real
+//! (`common::split`). Each figure is the error at 25 touch locations over the
+//! working volume (mean), against OpenCV's Park (what a user picks) and the
+//! best of the closed forms chosen by the truth, and the result's predicted
+//! p95 at those locations over the true p95. `docs/accuracy.md` tracks them.
+
+use b2b_calib::Iso3;
+use b2b_calib::metrics::predicted_error;
+use b2b_calib::refine::RefineOptions;
+use b2b_pipeline::{B2bMethod, CalibrationRun, base_to_base_run};
+use nalgebra::Point3;
+
+mod common;
+use common::split::*;
+
+/// What one real split measures.
+#[derive(Debug)]
+struct Figures {
+    ours_mm: f64,
+    park_mm: f64,
+    /// Park on poses from the jointly refined cameras (the pipeline's initial
+    /// intrinsics come from 8 views; a user of OpenCV would calibrate on all).
+    park_refined_camera_mm: f64,
+    best_mm: f64,
+    best: &'static str,
+    predicted_p95_mm: f64,
+    true_p95_mm: f64,
+    /// The model selection's choice and the held-out RMS (px) of it and Park.
+    chosen: String,
+    held_out_chosen_px: f64,
+    held_out_park_px: f64,
+}
+
+impl Figures {
+    fn ratio(&self) -> f64 {
+        self.predicted_p95_mm / self.true_p95_mm
+    }
+}
+
+/// `value` within 1.5x of `expected`, either way.
+fn within(what: &str, value: f64, expected: f64) {
+    assert!(
+        value < 1.5 * expected && value > expected / 1.5,
+        "{what}: {value} against {expected} (docs/accuracy.md): update both"
+    );
+}
+
+fn measure(name: &str, s: &Split) -> (Figures, CalibrationRun) {
+    let run = base_to_base_run(&s.dataset, B2bMethod::Board, &RefineOptions::default()).unwrap();
+    let r = &run.result;
+    let selection = r.model_selection.clone().expect("cross-validated");
+    let truth = s.base1_from_base2;
+    let flanges: Vec<Point3<f64>> = run.observations[0]
+        .observations
+        .iter()
+        .map(|o| Point3::from(o.board.base_from_flange.translation.vector))
+        .collect();
+    let points = touch_locations(&flanges);
+    let est: Iso3 = r.base1_from_base2.to_isometry("T").unwrap();
+    let ours = touch_errors(&est, &truth, &points);
+    let cov = nalgebra::Matrix6::from_fn(|i, j| r.covariance[i][j]);
+    let (_, predicted_p95) = predicted_error(&cov, &points, 0.0);
+    let mut closed = vec![];
+    for (k, m) in CLOSED_FORMS.iter().enumerate() {
+        let e = closed_form_base1_from_base2(&run.observations, k)
+            .map_or(f64::INFINITY, |z| mean(&touch_errors(&z, &truth, &points)));
+        closed.push((*m, e));
+    }
+    for rej in &r.captures.rejected {
+        eprintln!(
+            "  rejected: {} row {:?}: {}",
+            rej.robot, rej.row, rej.reason
+        );
+    }
+    // Park on the captures the fit kept (the screen's and fit's rejections out).
+    let mut kept_obs = run.observations.clone();
+    for o in &mut kept_obs {
+        let robot = o.robot.clone();
+        o.observations.retain(|x| {
+            !r.captures
+                .rejected
+                .iter()
+                .any(|j| j.robot == robot && j.row == Some(x.row))
+        });
+    }
+    let park_kept = closed_form_base1_from_base2(&kept_obs, 1)
+        .map_or(f64::INFINITY, |z| mean(&touch_errors(&z, &truth, &points)));
+    eprintln!(
+        "  park on the captures the fit kept: {:.3} mm",
+        park_kept * 1e3
+    );
+    let refit: Vec<_> = run
+        .observations
+        .iter()
+        .zip(&run.cameras)
+        .map(|(o, c)| b2b_pipeline::refit_poses(o.clone(), c.camera.clone(), "the refined camera"))
+        .collect();
+    let park_refit = closed_form_base1_from_base2(&refit, 1)
+        .map_or(f64::INFINITY, |z| mean(&touch_errors(&z, &truth, &points)));
+    eprintln!(
+        "  park with the jointly refined cameras: {:.3} mm",
+        park_refit * 1e3
+    );
+    let park = closed[1].1;
+    let (best, best_e) = closed
+        .iter()
+        .copied()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap();
+    let f = Figures {
+        ours_mm: mean(&ours) * 1e3,
+        park_mm: park * 1e3,
+        park_refined_camera_mm: park_refit * 1e3,
+        best_mm: best_e * 1e3,
+        best,
+        predicted_p95_mm: predicted_p95 * 1e3,
+        true_p95_mm: p95(&ours) * 1e3,
+        chosen: selection.chosen.clone(),
+        held_out_chosen_px: selection.held_out_px[&selection.chosen],
+        held_out_park_px: selection.held_out_px["park"],
+    };
+    // Never worse than Park on the evidence it computes.
+    assert!(f.held_out_chosen_px <= f.held_out_park_px, "{selection:?}");
+    eprintln!(
+        "{name}: used {:?}; ours {:.3} mm, park {:.3} mm, best closed form {:.3} mm ({}); \
+         predicted p95 {:.3} mm / true p95 {:.3} mm = {:.2}x",
+        r.captures.used,
+        f.ours_mm,
+        f.park_mm,
+        f.best_mm,
+        f.best,
+        f.predicted_p95_mm,
+        f.true_p95_mm,
+        f.ratio()
+    );
+    eprintln!(
+        "  closed forms (mm): {}",
+        closed
+            .iter()
+            .map(|(m, e)| format!("{m} {:.3}", e * 1e3))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    eprintln!("  model selection: {selection:?}");
+    for c in &run.cameras {
+        eprintln!("  {}", c.describe());
+        if let Some(n) = &c.pose_error {
+            eprintln!("  {} pose error: {}", c.robot, n.describe());
+        }
+    }
+    (f, run)
+}
+
+/// Tabb & Ahmad Yousef's Denso arm (88 captures, no intrinsics, a symmetric
+/// board 2 m away), 44 captures per pseudo robot.
+#[test]
+fn tabb_denso_split() {
+    let s = split("tabb-denso-ds1", &chosen_base1_from_base2());
+    let (f, _) = measure("tabb-denso-ds1", &s);
+    // docs/accuracy.md
+    within("ours", f.ours_mm, 4.61);
+    within("park, refined cameras", f.park_refined_camera_mm, 6.91);
+    within("predicted / true p95", f.ratio(), 1.26);
+    // The held-out captures keep the default: the refined shapes predict them
+    // at 2.04-2.08 px RMS, the closed forms at 8.0 px and worse.
+    assert_eq!(f.chosen, "refined");
+    within("held-out, refined", f.held_out_chosen_px, 2.04);
+    within("held-out, park", f.held_out_park_px, 8.62);
+}
+
+/// ViSP's Franka recording (8 captures, intrinsics given), 4 per pseudo robot.
+#[test]
+fn visp_franka_split() {
+    let s = split("visp-franka-eye-in-hand", &chosen_base1_from_base2());
+    let (f, _) = measure("visp-franka-eye-in-hand", &s);
+    // docs/accuracy.md
+    within("ours", f.ours_mm, 3.04);
+    within("park", f.park_mm, 3.09);
+    within("predicted / true p95", f.ratio(), 9.6);
+    // Three captures per robot in each fold's fit: the refinement's noise model
+    // has too little to go on (29.5 px and worse), the closed forms predict the
+    // held-out captures better and Daniilidis best.
+    assert_eq!(f.chosen, "daniilidis");
+    within("held-out, chosen", f.held_out_chosen_px, 14.4);
+    within("held-out, park", f.held_out_park_px, 14.9);
+}
+
+/// The bound's ratio on the rendered sets (their truth from
+/// `ground_truth.json`): predicted p95 over the true p95 at 27 points of a
+/// 0.3 m cube about robot 1's mean flange position.
+#[test]
+fn rendered_sets_bound_ratio() {
+    use b2b_dataset::{Dataset, load_ground_truth};
+    // docs/accuracy.md: (set, method, predicted / true p95)
+    for (name, method, expected) in [
+        ("sim-checkerboard-2x12", B2bMethod::Board, 1.98),
+        ("sim-multimarker-4x3-2x10", B2bMethod::Multimarker, 0.85),
+        ("sim-multimarker-corner-2x10", B2bMethod::Multimarker, 1.29),
+    ] {
+        let dir = common::bundled(name);
+        let ds = Dataset::load(&dir).unwrap();
+        let truth = load_ground_truth(&dir)
+            .unwrap()
+            .unwrap()
+            .base1_from_base2
+            .unwrap();
+        let run = base_to_base_run(&ds, method, &RefineOptions::default()).unwrap();
+        let r = &run.result;
+        let est: Iso3 = r.base1_from_base2.to_isometry("T").unwrap();
+        // A 0.3 m cube about robot 1's mean flange position.
+        let flanges: Vec<Point3<f64>> = run.observations[0]
+            .observations
+            .iter()
+            .map(|o| Point3::from(o.board.base_from_flange.translation.vector))
+            .collect();
+        let mean_flange = Point3::from(
+            flanges
+                .iter()
+                .fold(nalgebra::Vector3::zeros(), |a, p| a + p.coords)
+                / flanges.len() as f64,
+        );
+        let points: Vec<Point3<f64>> = (0..27)
+            .map(|k| {
+                let o =
+                    nalgebra::Vector3::new((k % 3) as f64, ((k / 3) % 3) as f64, (k / 9) as f64)
+                        * 0.15
+                        - nalgebra::Vector3::repeat(0.15);
+                mean_flange + o
+            })
+            .collect();
+        let errors = touch_errors(&est, &truth, &points);
+        let cov = nalgebra::Matrix6::from_fn(|i, j| r.covariance[i][j]);
+        let (_, predicted) = predicted_error(&cov, &points, 0.0);
+        let ratio = predicted / p95(&errors);
+        eprintln!(
+            "{name}: {:.3} mm mean, predicted p95 {:.3} mm / true p95 {:.3} mm = {ratio:.2}x; {:?}",
+            mean(&errors) * 1e3,
+            predicted * 1e3,
+            p95(&errors) * 1e3,
+            r.model_selection
+                .as_ref()
+                .map(|m| (&m.chosen, m.spread_scale))
+        );
+        within(name, ratio, expected);
+    }
+}
