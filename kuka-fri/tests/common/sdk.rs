@@ -162,7 +162,11 @@ impl SineOverlayClient {
         }
         self.counter = 0;
         self.replies_due += 1;
-        if self.silent || self.skip_every.is_some_and(|k| self.replies_due.is_multiple_of(k)) {
+        if self.silent
+            || self
+                .skip_every
+                .is_some_and(|k| self.replies_due.is_multiple_of(k))
+        {
             return None;
         }
         let reply = FriCommandMessage {
