@@ -319,6 +319,7 @@ impl Verdict {
             format!("VERDICT: FAIL {}", self.reasons.join("; "))
         }
     }
+}
 
 /// Which estimator the held-out captures chose ([`CalibrationResult::model_selection`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -192,7 +192,9 @@ fn a_slow_subscriber_counts_its_drops_and_never_slows_the_camera() {
     // never waited.
     let seconds = s["seconds"].as_f64().unwrap();
     let slowest_us = s["colour"]["slowest_publish_us"].as_f64().unwrap();
-    eprintln!("the camera took {seconds:.2} s for 1 s of frames; slowest publish {slowest_us:.0} us");
+    eprintln!(
+        "the camera took {seconds:.2} s for 1 s of frames; slowest publish {slowest_us:.0} us"
+    );
     let st = sub.stats();
     let first = sequences[0];
     assert_eq!(st.received, sequences.len() as u64);
