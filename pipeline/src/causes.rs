@@ -87,7 +87,7 @@ pub fn result_verdict(result: &CalibrationResult, tolerance_mm: f64) -> Verdict 
         predicted.push((format!("T_{}_{}", p.a, p.b), p.predicted_touch_error_m.p95));
     }
     for (what, p95_m) in predicted {
-        if !(p95_m * 1e3 <= tolerance_mm) {
+        if p95_m.is_nan() || p95_m * 1e3 > tolerance_mm {
             reasons.push(format!(
                 "predicted p95 touch error of {what} {:.2} mm is above the tolerance of {tolerance_mm:.2} mm",
                 p95_m * 1e3
@@ -118,7 +118,7 @@ pub fn result_verdict(result: &CalibrationResult, tolerance_mm: f64) -> Verdict 
 pub fn verify_verdict(report: &VerifyReport, metrics: &TouchMetrics, tolerance_mm: f64) -> Verdict {
     let mut reasons = Vec::new();
     let touched = touch_p95_m(metrics) * 1e3;
-    if !(touched <= tolerance_mm) {
+    if touched.is_nan() || touched > tolerance_mm {
         reasons.push(format!(
             "the touches' p95 error {touched:.2} mm is above the tolerance of {tolerance_mm:.2} mm"
         ));

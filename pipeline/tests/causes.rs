@@ -60,18 +60,19 @@ fn m2(result: &b2b_protocol::CalibrationResult, truth: &Iso3) -> f64 {
     mahalanobis2(&left_difference(&est, truth), &cov).unwrap()
 }
 
-fn run(dir: &std::path::Path) -> Result<b2b_pipeline::CalibrationRun, b2b_pipeline::PipelineError> {
+/// The calibration of the dataset in `dir`, or its error as one line.
+fn run(dir: &std::path::Path) -> Result<b2b_pipeline::CalibrationRun, String> {
     let ds = Dataset::load(dir).unwrap();
     let method = B2bMethod::default_for(&ds.manifest.target);
     base_to_base_run(&ds, method, &RefineOptions::default())
+        .map_err(|e| b2b_pipeline::error_chain(&e))
 }
 
 #[test]
 fn poses_written_inverted_are_refused_by_name() {
     let (_tmp, dir) = copy("sim-checkerboard-2x12");
     map_poses(&dir, "robot1", |_, p| p.inverse());
-    let err = run(&dir).unwrap_err();
-    let text = b2b_pipeline::error_chain(&err);
+    let text = run(&dir).unwrap_err();
     eprintln!("{text}");
     assert!(
         text.contains("robot1's poses look inverted (T_flange_base instead of T_base_flange)"),
@@ -167,7 +168,7 @@ fn marker_widths_in_metres_are_refused_by_their_unit() {
     std::fs::write(&file, text.replace("\n40.000000\n", "\n0.040000\n")).unwrap();
     let err = match run(&dir) {
         Ok(_) => panic!("widths in metres accepted"),
-        Err(e) => b2b_pipeline::error_chain(&e),
+        Err(e) => e,
     };
     eprintln!("{err}");
     assert!(err.contains("the widths look like metres"), "{err}");
