@@ -1046,7 +1046,7 @@ pub fn rejection_summary(rejected: &[RejectedCapture]) -> String {
         }
     }
     // Most frequent first; ties in the order first seen.
-    groups.sort_by(|a, b| b.1.cmp(&a.1));
+    groups.sort_by_key(|g| std::cmp::Reverse(g.1));
     let mut parts: Vec<String> = groups
         .iter()
         .take(TOP_REASONS)
