@@ -152,19 +152,22 @@ fn tilted_symmetric_board_is_decided_between_robots_by_gravity() {
     let est = result.base1_from_base2.to_isometry("T").unwrap();
     let (dt, da) = pose_distance(&est, &truth.base1_from_base2.unwrap());
     eprintln!(
-        "tilted 8x6: used {:?}, base1_from_base2 {:.3} mm {:.4}° from the truth",
+        "tilted 8x6: used {:?}, base1_from_base2 {:.3} mm {:.4}° from the truth; {:?}",
         result.captures.used,
         dt * 1e3,
-        da.to_degrees()
+        da.to_degrees(),
+        result.model_selection
     );
     assert!(
         result.captures.used.values().all(|&n| n == 8),
         "{:?}",
         result.captures
     );
-    // Measured (seed 5): 0.73 mm, 0.042° (the committed flat 9x6 set: 0.37 mm, 0.019°
-    // with 12 captures per robot).
-    assert!(dt < 1.1e-3 && da.to_degrees() < 0.065, "{dt} m {da} rad");
+    // Measured (seed 5): 1.19 mm, 0.065°. The held-out captures choose Tsai here
+    // (0.212 px against the refinement's 0.238 px over five folds of 8 captures);
+    // the refinement alone gave 0.73 mm, 0.042° (the committed flat 9x6 set: 0.37
+    // mm, 0.019° with 12 captures per robot). Within 1.5x of what is measured.
+    assert!(dt < 1.8e-3 && da.to_degrees() < 0.098, "{dt} m {da} rad");
 }
 
 /// What other rigs bring together: a symmetric board (8x6 inner corners, 70 mm

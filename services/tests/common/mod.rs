@@ -100,8 +100,10 @@ pub fn verify(
         .args(extra)
         .output()
         .unwrap();
+    // Exit 4 is a finished verify whose verdict is FAIL (its own tests are in
+    // cli.rs); the callers here check the figures.
     assert!(
-        out.status.success(),
+        out.status.success() || out.status.code() == Some(4),
         "coordinator verify failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
@@ -159,7 +161,8 @@ pub fn offline_result_of(
         .stdout(std::process::Stdio::null())
         .status()
         .unwrap();
-    assert!(status.success());
+    // Exit 4: written, with a FAIL verdict (the verdict's own tests are in cli.rs).
+    assert!(status.success() || status.code() == Some(4), "{status}");
     serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
 }
 
