@@ -961,6 +961,33 @@ enum Answer {
 /// hears none (and what its endpoints answer), once.
 pub const NO_COORDINATOR_WARNING: Duration = Duration::from_secs(5);
 
+/// The next message of `inbox` within 50 ms when it is valid and of the
+/// session this agent echoes (`what` names it in the log); an invalid one, or
+/// one of another session, is logged and gives `Ok(None)`. `Err` when the
+/// inbox itself failed (logged).
+fn take_ours<T: serde::de::DeserializeOwned + b2b_protocol::messages::Validate>(
+    inbox: &dyn bus::Inbox,
+    link: &StatusLink,
+    what: &str,
+) -> Result<Option<T>, ()> {
+    match inbox.recv_timeout(Duration::from_millis(50)) {
+        Ok(Some(m)) => match bus::decode::<T>(&m.key, &m.payload) {
+            Ok(envelope) => Ok(link
+                .ours(envelope.session.as_deref(), what)
+                .then_some(envelope.body)),
+            Err(reason) => {
+                crate::warn_limited(&m.key, &format!("ignored a {what} message: {reason}"));
+                Ok(None)
+            }
+        },
+        Ok(None) => Ok(None),
+        Err(e) => {
+            tracing::warn!("{e}");
+            Err(())
+        }
+    }
+}
+
 /// The coordinator's result or failure, validated and of the session this
 /// agent echoes, or [`Answer::None`] when `wait` passed (or `stop` was set)
 /// without one. Invalid messages, and answers of another session or of none,
@@ -989,39 +1016,16 @@ fn wait_for_result(
                 );
             }
         }
-        match answers.results.recv_timeout(Duration::from_millis(100)) {
-            Ok(Some(m)) => match bus::decode::<CalibrationResult>(&m.key, &m.payload) {
-                Ok(envelope) => {
-                    if link.ours(envelope.session.as_deref(), "result") {
-                        return Answer::Result(Box::new(envelope.body));
-                    }
-                }
-                Err(reason) => {
-                    crate::warn_limited(&m.key, &format!("ignored a result message: {reason}"))
-                }
-            },
+        // Each inbox waits half the loop's 100 ms, so neither delays the other.
+        match take_ours::<CalibrationResult>(answers.results, link, "result") {
+            Ok(Some(result)) => return Answer::Result(Box::new(result)),
             Ok(None) => {}
-            Err(e) => {
-                tracing::warn!("{e}");
-                return Answer::None;
-            }
+            Err(()) => return Answer::None,
         }
-        match answers.failures.recv_timeout(Duration::from_millis(100)) {
-            Ok(Some(m)) => match bus::decode::<RunFailure>(&m.key, &m.payload) {
-                Ok(envelope) => {
-                    if link.ours(envelope.session.as_deref(), "failure") {
-                        return Answer::Failed(envelope.body.reason);
-                    }
-                }
-                Err(reason) => {
-                    crate::warn_limited(&m.key, &format!("ignored a failure message: {reason}"))
-                }
-            },
+        match take_ours::<RunFailure>(answers.failures, link, "failure") {
+            Ok(Some(failure)) => return Answer::Failed(failure.reason),
             Ok(None) => {}
-            Err(e) => {
-                tracing::warn!("{e}");
-                return Answer::None;
-            }
+            Err(()) => return Answer::None,
         }
     }
     Answer::None
