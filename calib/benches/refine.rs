@@ -9,12 +9,17 @@
 //! (`pipeline/tests/intrinsics.rs`). Run `cargo bench -p b2b-calib --bench
 //! refine` for numbers (README); `cargo test --benches` runs each once as a
 //! smoke test.
+//!
+//! `robots/N`: the default estimator on N robots of 27 captures each about
+//! one board (`synth::robots_around`): its time grows linearly with N (each
+//! capture adds a block of the normal equations over its own unknowns; each
+//! leave-one-out step is a low-rank update).
 
 use b2b_calib::base_to_base::{BaseToBaseInitial, perturb_initial, refine_base_to_base};
 use b2b_calib::estimate::{RobotCaptures, estimate_base_to_base, estimate_bases};
 use b2b_calib::pose::perturb_left;
 use b2b_calib::refine::{RefineOptions, refine_hand_eye};
-use b2b_calib::synth::{SynthConfig, random_robot, three_robots, two_robots};
+use b2b_calib::synth::{SynthConfig, random_robot, robots_around, three_robots, two_robots};
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Vector6;
 use std::hint::black_box;
@@ -92,6 +97,33 @@ fn bench(c: &mut Criterion) {
     c.bench_function("default_estimator_3x30x54", |b| {
         b.iter(|| estimate_bases(black_box(&refs3), &opts).expect("converges"))
     });
+
+    // The default estimator as the robots grow, 27 captures each.
+    let mut group = c.benchmark_group("robots");
+    group.sample_size(10);
+    for n in [2, 4, 8, 12] {
+        let cfg27 = SynthConfig {
+            captures: 27,
+            ..SynthConfig::default()
+        };
+        let many = robots_around(n, 1, &cfg27).expect("synthetic problem");
+        let caps: Vec<_> = many.robots.iter().map(|r| r.board_captures()).collect();
+        let robots: Vec<RobotCaptures<'_>> = many
+            .robots
+            .iter()
+            .zip(&caps)
+            .map(|(r, c)| RobotCaptures {
+                camera: &cfg27.camera,
+                captures: c,
+                camera_from_target: &r.camera_from_target,
+            })
+            .collect();
+        let refs: Vec<&RobotCaptures<'_>> = robots.iter().collect();
+        group.bench_function(format!("{n}x27x54"), |b| {
+            b.iter(|| estimate_bases(black_box(&refs), &opts).expect("converges"))
+        });
+    }
+    group.finish();
 
     // The same problem with both cameras' nine intrinsics refined jointly, from
     // cameras 1 % off in focal length and 2 px off in the principal point (what

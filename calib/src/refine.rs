@@ -544,6 +544,54 @@ impl Whitening {
     }
 }
 
+/// One capture's whitened normal equations over the unknowns it depends on
+/// ([`Engine::capture_columns`]).
+#[derive(Debug, Clone)]
+struct CaptureNormal {
+    cols: Vec<usize>,
+    /// `J_cᵀJ_c` over `cols`.
+    jtj: DMatrix<f64>,
+    /// `J_cᵀr_c` over `cols`.
+    jtr: DVector<f64>,
+}
+
+impl CaptureNormal {
+    /// Adds this capture's block into the whole problem's normal equations.
+    fn add_to(&self, jtj: &mut DMatrix<f64>, jtr: &mut DVector<f64>) {
+        for (a, &i) in self.cols.iter().enumerate() {
+            jtr[i] += self.jtr[a];
+            for (b, &j) in self.cols.iter().enumerate() {
+                jtj[(i, j)] += self.jtj[(a, b)];
+            }
+        }
+    }
+
+    /// The Gauss-Newton step `(A - J_cᵀJ_c)⁻¹ J_cᵀr_c` that leaving this
+    /// capture out would take, from `p = A⁻¹` without refactorising `A`: with
+    /// `E` the columns `cols` of the identity and `M = J_cᵀJ_c`,
+    /// `(A - E M Eᵀ)⁻¹ E h = P E (I - M P_SS)⁻¹ h` (the push-through form of
+    /// the Woodbury identity, valid for a singular `M`). `None` when
+    /// `A - E M Eᵀ` is not positive definite (the other captures do not
+    /// determine every unknown): exactly when `I - Lᵀ M L` is not, for
+    /// `P_SS = L Lᵀ`.
+    fn left_out_step(&self, p: &DMatrix<f64>) -> Option<DVector<f64>> {
+        let k = self.cols.len();
+        let p_ss = p.select_rows(&self.cols).select_columns(&self.cols);
+        let l = p_ss.clone().cholesky()?.l();
+        let c = DMatrix::identity(k, k) - l.transpose() * &self.jtj * &l;
+        // Positive definite with some room: a capture whose removal leaves an
+        // unknown determined to less than 1e-9 of its information cannot go.
+        let c = (&c + c.transpose()) * 0.5;
+        let eig = c.clone().symmetric_eigenvalues();
+        if eig.iter().any(|v| !(*v > 1e-9)) {
+            return None;
+        }
+        let kmat = DMatrix::identity(k, k) - &self.jtj * &p_ss;
+        let y = kmat.lu().solve(&self.jtr)?;
+        Some(p.select_columns(&self.cols) * y)
+    }
+}
+
 /// One capture's residuals split into the part a flange pose error can explain
 /// (its 6-D pose subspace) and the rest, which only corner noise reaches: the
 /// unknowns move each capture's camera pose only, so they never reach the rest.
@@ -612,9 +660,33 @@ impl Engine {
         )
     }
 
+    /// The unknowns one capture's residuals depend on, as indices into the
+    /// parameter vector: its target's pose, its hand-eye, its robot's base
+    /// (when not the reference) and its camera's intrinsics (when refined).
+    /// Every other column of its Jacobian is zero, so each capture adds a
+    /// small dense block to the normal equations and the work per capture does
+    /// not grow with the number of robots.
+    fn capture_columns(&self, ci: usize) -> Vec<usize> {
+        let cap = &self.captures[ci];
+        let mut blocks = vec![cap.target, cap.hand_eye];
+        blocks.extend(cap.ref_from_base);
+        let mut cols: Vec<usize> = Vec::with_capacity(6 * blocks.len() + N_INTRINSICS);
+        for b in blocks {
+            if !cols.contains(&(6 * b)) {
+                cols.extend(6 * b..6 * b + 6);
+            }
+        }
+        if self.refine_intrinsics {
+            let off = 6 * self.reference_poses.len() + N_INTRINSICS * cap.camera;
+            cols.extend(off..off + N_INTRINSICS);
+        }
+        cols
+    }
+
     /// One capture's residuals (2 per corner in `corners`), their Jacobian (when
-    /// asked) and their sensitivity `G` to the capture's flange pose (left
-    /// perturbation in its base), whitened when `whiten` (`G` stays raw).
+    /// asked; over [`Engine::capture_columns`] only, in that order) and their
+    /// sensitivity `G` to the capture's flange pose (left perturbation in its
+    /// base), whitened when `whiten` (`G` stays raw).
     fn capture_block(
         &self,
         ci: usize,
@@ -625,7 +697,13 @@ impl Engine {
         whiten: bool,
     ) -> Option<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
         let cap = &self.captures[ci];
-        let n = self.n_params();
+        let cols = if with_jacobian {
+            self.capture_columns(ci)
+        } else {
+            Vec::new()
+        };
+        // Where a parameter block starts in the compact Jacobian.
+        let at = |global: usize| cols.iter().position(|c| *c == global);
         let x = poses[cap.hand_eye];
         let w = poses[cap.target];
         let (base_from_camera, camera_from_ref) = cap.chain(poses);
@@ -639,11 +717,7 @@ impl Engine {
         let n_in = corners.iter().filter(|v| **v).count();
         let mut r = DVector::zeros(2 * n_in);
         let mut g = DMatrix::zeros(2 * n_in, 6);
-        let mut j = if with_jacobian {
-            DMatrix::zeros(2 * n_in, n)
-        } else {
-            DMatrix::zeros(0, 0)
-        };
+        let mut j = DMatrix::zeros(if with_jacobian { 2 * n_in } else { 0 }, cols.len());
         let intr_off = 6 * poses.len();
         let mut row = 0;
         for (k, (p, uv)) in cap
@@ -671,8 +745,10 @@ impl Engine {
             if with_jacobian {
                 let mut put = |block: usize, d: &Matrix6<f64>| {
                     let v = jd * d;
-                    let mut dst = j.view_mut((row, 6 * block), (2, 6));
-                    dst += v;
+                    if let Some(c) = at(6 * block) {
+                        let mut dst = j.view_mut((row, c), (2, 6));
+                        dst += v;
+                    }
                 };
                 put(cap.target, &d_target);
                 put(cap.hand_eye, &d_hand_eye);
@@ -681,8 +757,8 @@ impl Engine {
                 }
                 if self.refine_intrinsics {
                     let ji = cam.intrinsics_jacobian(&p_c)?;
-                    let off = intr_off + N_INTRINSICS * cap.camera;
-                    j.view_mut((row, off), (2, N_INTRINSICS)).copy_from(&ji);
+                    let c = at(intr_off + N_INTRINSICS * cap.camera)?;
+                    j.view_mut((row, c), (2, N_INTRINSICS)).copy_from(&ji);
                 }
             }
             row += 2;
@@ -696,9 +772,10 @@ impl Engine {
         Some((r, j, g))
     }
 
-    /// Each used capture's whitened `J_cᵀJ_c` and `J_cᵀr_c`: once, for the final
-    /// covariance (their sum) and its leave-one-out spread.
-    fn capture_normals(&self) -> Option<Vec<(DMatrix<f64>, DVector<f64>)>> {
+    /// Each used capture's whitened `J_cᵀJ_c` and `J_cᵀr_c` over its own
+    /// columns: once, for the final covariance (their sum) and its
+    /// leave-one-out spread.
+    fn capture_normals(&self) -> Option<Vec<CaptureNormal>> {
         let (poses, cameras) = self.current();
         self.captures
             .iter()
@@ -707,13 +784,19 @@ impl Engine {
             .map(|(ci, cap)| {
                 let (rc, jc, _) =
                     self.capture_block(ci, &cap.inlier, &poses, &cameras, true, true)?;
-                Some((jc.transpose() * &jc, jc.transpose() * rc))
+                Some(CaptureNormal {
+                    cols: self.capture_columns(ci),
+                    jtj: jc.transpose() * &jc,
+                    jtr: jc.transpose() * rc,
+                })
             })
             .collect()
     }
 
     /// The whitened normal equations `JᵀJ`, `Jᵀr` and `rᵀr`, accumulated capture
-    /// by capture (a dense product per capture instead of one tall matrix).
+    /// by capture: each capture's small dense block (over the few unknowns it
+    /// depends on) added into the whole, so the work grows with the captures
+    /// and not with the square of the robots.
     fn normal_equations(&self) -> Option<(DMatrix<f64>, DVector<f64>, f64)> {
         let n = self.n_params();
         let (poses, cameras) = self.current();
@@ -725,8 +808,12 @@ impl Engine {
                 continue;
             }
             let (rc, jc, _) = self.capture_block(ci, &cap.inlier, &poses, &cameras, true, true)?;
-            jtj.gemm_tr(1.0, &jc, &jc, 1.0);
-            jtr.gemv_tr(1.0, &jc, &rc, 1.0);
+            let normal = CaptureNormal {
+                cols: self.capture_columns(ci),
+                jtj: jc.transpose() * &jc,
+                jtr: jc.transpose() * &rc,
+            };
+            normal.add_to(&mut jtj, &mut jtr);
             rss += rc.norm_squared();
         }
         if self.refine_intrinsics {
@@ -762,15 +849,18 @@ impl Engine {
     /// [`crate::estimate`]. `None` when a capture cannot be left out (the rest
     /// would not determine every unknown), or with fewer than two captures per
     /// reported dimension.
+    ///
+    /// `p` is `A⁻¹`; each step costs the cube of one capture's unknowns
+    /// ([`CaptureNormal::left_out_step`]), not of the whole problem's.
     fn leave_one_out_spread(
         &self,
-        a: &DMatrix<f64>,
-        normals: &[(DMatrix<f64>, DVector<f64>)],
+        p: &DMatrix<f64>,
+        normals: &[CaptureNormal],
     ) -> Option<DMatrix<f64>> {
         let n = self.n_params();
         let mut steps = Vec::with_capacity(normals.len());
-        for (jtj, jtr) in normals {
-            steps.push((a - jtj).cholesky()?.solve(jtr));
+        for normal in normals {
+            steps.push(normal.left_out_step(p)?);
         }
         // The jackknife's variance: (G - 1) / G times the leave-one-out
         // estimates' scatter about their mean.
@@ -1581,17 +1671,19 @@ pub(crate) fn solve(
         .capture_normals()
         .ok_or_else(|| CalibError::Optimisation("a corner went behind its camera".into()))?;
     let n = engine.n_params();
-    let a = normals
-        .iter()
-        .fold(DMatrix::zeros(n, n), |acc, (jtj, _)| acc + jtj);
-    let mut covariance = a.clone().try_inverse().ok_or_else(|| {
+    let mut a = DMatrix::zeros(n, n);
+    let mut unused = DVector::zeros(n);
+    for normal in &normals {
+        normal.add_to(&mut a, &mut unused);
+    }
+    let mut covariance = a.try_inverse().ok_or_else(|| {
         CalibError::Optimisation(
             "normal matrix is singular: the data do not determine every unknown".into(),
         )
     })?;
     covariance = (&covariance + covariance.transpose()) * 0.5;
     let spread = if options.widen_to_spread {
-        engine.leave_one_out_spread(&a, &normals)
+        engine.leave_one_out_spread(&covariance, &normals)
     } else {
         None
     };

@@ -451,3 +451,65 @@ pub fn two_targets(seed: u64, cfg: &SynthConfig, linked: bool) -> Result<TwoTarg
         views,
     })
 }
+
+/// `n` robots sharing one board, their carts spread on a circle about it.
+#[derive(Debug, Clone)]
+pub struct ManyRobots {
+    pub robots: Vec<SynthRobot>,
+    /// `base1_from_base` of robots 2 to `n`, in order.
+    pub base1_from_base: Vec<Iso3>,
+}
+
+/// `n` carts (at least one) evenly spread on a circle of 0.5 m about a board,
+/// each facing it (robot 1's base where [`two_robots`] puts it); the scaling
+/// problem of a platform with many arms. Deterministic for a seed.
+pub fn robots_around(n: usize, seed: u64, cfg: &SynthConfig) -> Result<ManyRobots, CalibError> {
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x6d61_6e79_0000_0000);
+    let base1_from_target = Iso3::from_parts(
+        Translation3::new(0.5, 0.0, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+    );
+    let mut robots = Vec::with_capacity(n);
+    let mut base1_from_base = Vec::with_capacity(n.saturating_sub(1));
+    for k in 0..n.max(1) {
+        // About the board's centre, by the cart's angle on the circle.
+        let angle = std::f64::consts::TAU * k as f64 / n.max(1) as f64;
+        let base1_from_basek = Iso3::from_parts(
+            Translation3::new(0.5, 0.0, 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle),
+        ) * Iso3::from_parts(
+            Translation3::new(
+                -0.5 + rng.random_range(-0.05..0.05),
+                rng.random_range(-0.05..0.05),
+                rng.random_range(-0.02..0.02),
+            ),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rng.random_range(-0.1..0.1)),
+        );
+        let base1_from_basek = if k == 0 {
+            Iso3::identity()
+        } else {
+            base1_from_basek
+        };
+        let hand_eye = Iso3::from_parts(
+            Translation3::new(
+                rng.random_range(-0.06..0.06),
+                rng.random_range(-0.06..0.06),
+                0.05,
+            ),
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, rng.random_range(-3.0..3.0))),
+        );
+        robots.push(make_robot(
+            &mut rng,
+            cfg,
+            hand_eye,
+            base1_from_basek.inverse() * base1_from_target,
+        )?);
+        if k > 0 {
+            base1_from_base.push(base1_from_basek);
+        }
+    }
+    Ok(ManyRobots {
+        robots,
+        base1_from_base,
+    })
+}

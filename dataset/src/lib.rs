@@ -76,18 +76,17 @@ pub const MAX_COORDINATE_M: f64 = 10.0;
 /// compare every pair of captures, so their work grows with the square of
 /// this (1,000 rows of two robots: 32 s and 220 MB in a debug build).
 pub const MAX_CAPTURES_PER_ROBOT: usize = 1_000;
-/// Most captures of all robots of one dataset times the number of robots
-/// (2 robots: 2,000 captures in all; 12 robots: 333). The joint fit's normal
-/// equations are dense over every robot's unknowns, so each capture costs
-/// the square of the robots, and the leave-one-out spread a factorisation of
-/// their cube: 12 robots of 166 captures ran past 500 s in a debug build, 12
-/// of 20 took 71 s, 2 of 1,000 took 32 s.
-pub const MAX_CAPTURES_TIMES_ROBOTS: usize = 4_000;
-/// Most robots in one `dataset.json`. The joint fit of every base solves one
-/// dense problem over all robots: per capture, the normal equations cost the
-/// square of the robots and the leave-one-out spread a factorisation of their
-/// cube (10 robots took 3.8 s, 30 took 54 s, 100 ran past 900 s); a platform
-/// has 2 to 4 arms.
+/// Most captures of all robots of one dataset (two robots at
+/// [`MAX_CAPTURES_PER_ROBOT`] each). The joint fit of every base adds each
+/// capture's small block to its normal equations and takes each
+/// leave-one-out step by a low-rank update, so its work grows with the
+/// captures, not with the robots (`cargo bench -p b2b-calib --bench refine
+/// robots`); what the limit bounds is the detection of every image and the
+/// per-robot pairwise checks.
+pub const MAX_CAPTURES_TOTAL: usize = 2_000;
+/// Most robots in one `dataset.json`: a platform has 2 to 4 arms. The joint
+/// fit grows linearly with the robots at a fixed number of captures each;
+/// the normal matrix itself (21 unknowns per robot) stays small.
 pub const MAX_ROBOTS: usize = 12;
 /// Most rows of one touch file (`touch_points.csv` and the pair files).
 pub const MAX_TOUCHES: usize = 10_000;
@@ -235,15 +234,15 @@ impl Dataset {
                 },
             )?;
             total_captures += captures.len();
-            let limit = MAX_CAPTURES_TIMES_ROBOTS / manifest.robots.len();
+            let limit = MAX_CAPTURES_TOTAL;
             if total_captures > limit {
                 return Err(DatasetError::TooManyRows {
                     file: captures_file,
                     what: "captures in this and the earlier robots' captures.csv",
                     limit,
-                    constant: "MAX_CAPTURES_TIMES_ROBOTS divided by the robots",
-                    advice: "the joint fit of every base grows with the captures times the \
-                             square of the robots: keep a subset of each robot's captures",
+                    constant: "MAX_CAPTURES_TOTAL",
+                    advice: "every image is detected and every robot's captures compared: \
+                             keep a subset of each robot's captures",
                 });
             }
             robots.push(RobotData {

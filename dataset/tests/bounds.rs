@@ -296,8 +296,8 @@ fn more_captures_in_all_than_the_dataset_limit_are_refused() {
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-3x12"),
         &dir,
     );
-    // Three robots: at most a third of MAX_CAPTURES_TIMES_ROBOTS in all.
-    let per_robot = b2b_dataset::MAX_CAPTURES_TIMES_ROBOTS / 3 / 2;
+    // Three robots: at most MAX_CAPTURES_TOTAL in all.
+    let per_robot = b2b_dataset::MAX_CAPTURES_TOTAL / 2 - 1;
     assert!(per_robot <= MAX_CAPTURES_PER_ROBOT);
     for robot in ["robot1", "robot2", "robot3"] {
         let captures = dir.join(robot).join("captures.csv");
@@ -313,17 +313,14 @@ fn more_captures_in_all_than_the_dataset_limit_are_refused() {
     let text = e.to_string();
     assert!(
         text.contains("robot3/captures.csv")
-            && text.contains("MAX_CAPTURES_TIMES_ROBOTS divided by the robots")
-            && text.contains(&format!(
-                "more than {}",
-                b2b_dataset::MAX_CAPTURES_TIMES_ROBOTS / 3
-            )),
+            && text.contains("MAX_CAPTURES_TOTAL")
+            && text.contains(&format!("more than {}", b2b_dataset::MAX_CAPTURES_TOTAL)),
         "{text}"
     );
     // At exactly the limit the dataset loads.
     repeat_rows(
         &dir.join("robot3/captures.csv"),
-        b2b_dataset::MAX_CAPTURES_TIMES_ROBOTS / 3 - 2 * per_robot,
+        b2b_dataset::MAX_CAPTURES_TOTAL - 2 * per_robot,
     );
     load_within(&dir).unwrap();
 }

@@ -47,6 +47,7 @@ pub mod kind {
     pub const BOARD_SCALE: &str = "board_scale";
     pub const SPREAD: &str = "spread_beyond_chance";
     pub const INTRINSICS: &str = "intrinsics";
+    pub const SWAPPED_ROBOTS: &str = "swapped_robots";
 }
 
 /// The 95th percentile of `values` (nearest rank).
@@ -123,6 +124,13 @@ pub fn verify_verdict(report: &VerifyReport, metrics: &TouchMetrics, tolerance_m
             "the touches' p95 error {touched:.2} mm is above the tolerance of {tolerance_mm:.2} mm"
         ));
     }
+    reasons.extend(
+        report
+            .findings
+            .iter()
+            .filter(|f| f.fails)
+            .map(|f| f.message.clone()),
+    );
     if let Some(b) = &report.bound_check
         && b.offset_beyond_chance
     {
@@ -136,6 +144,54 @@ pub fn verify_verdict(report: &VerifyReport, metrics: &TouchMetrics, tolerance_m
         tolerance_mm,
         reasons,
     }
+}
+
+/// The touches' RMS error (m) under `a_from_b`.
+fn touch_rms_m(a_from_b: &Iso3, touches: &[(nalgebra::Point3<f64>, nalgebra::Point3<f64>)]) -> f64 {
+    let n = touches.len().max(1) as f64;
+    (touches
+        .iter()
+        .map(|(a, b)| (a - a_from_b * b).norm_squared())
+        .sum::<f64>()
+        / n)
+        .sqrt()
+}
+
+/// The robots of a result the other way round from the touch file's
+/// columns: the touches fit the result inverted far better than as given.
+/// The robot folders (or `dataset.json`'s ids) swapped, or the touch
+/// file's columns. Named, as failing, when the inverse fits within three
+/// times the touches' own rigid fit (their noise floor) plus 1 mm, and the
+/// result as given fits more than three times worse than the inverse and
+/// more than 1 mm worse. Carts facing each other give a transform close to
+/// its own inverse (a half turn about the vertical): there the two fit
+/// alike and nothing is said, as the swap then moves the result little.
+pub fn swapped_robots(
+    a_from_b: &Iso3,
+    touches: &[(nalgebra::Point3<f64>, nalgebra::Point3<f64>)],
+    metrics: &TouchMetrics,
+    [a, b]: [&str; 2],
+) -> Option<Finding> {
+    let given = touch_rms_m(a_from_b, touches);
+    let inverse = touch_rms_m(&a_from_b.inverse(), touches);
+    let floor = touch_rms_m(&metrics.procrustes_base1_from_base2, touches);
+    let fits = inverse <= 3.0 * floor + 1e-3;
+    let worse = given > 3.0 * inverse && given - inverse > 1e-3;
+    (fits && worse).then(|| Finding {
+        kind: kind::SWAPPED_ROBOTS.into(),
+        robot: None,
+        row: None,
+        fails: true,
+        message: format!(
+            "the touches fit the result inverted (RMS {:.2} mm against {:.2} mm as given; \
+             their own rigid fit {:.2} mm): {a} and {b} are the other way round in the \
+             result than in the touch file (columns 1-3 {a}'s base, 4-6 {b}'s): the robot \
+             folders or ids swapped in the dataset, or the touch file's columns?",
+            inverse * 1e3,
+            given * 1e3,
+            floor * 1e3
+        ),
+    })
 }
 
 /// The covariance widened beyond chance, as a finding that informs (the

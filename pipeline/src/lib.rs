@@ -2621,6 +2621,24 @@ pub fn verify_pair(
         .collect();
     let m = verify_touches(&a_from_b, &cov, &pairs, tip_sigma_m)
         .map_err(|source| PipelineError::Touches { source })?;
+    let names = match pair {
+        Some((a, b)) => [a.to_owned(), b.to_owned()],
+        None => {
+            let mut ids = result.hand_eye.keys().cloned();
+            let first = result.reference.clone().or_else(|| ids.next());
+            let first = first.unwrap_or_else(|| "robot 1".into());
+            let second = result
+                .hand_eye
+                .keys()
+                .find(|k| **k != first)
+                .cloned()
+                .unwrap_or_else(|| "robot 2".into());
+            [first, second]
+        }
+    };
+    let findings = causes::swapped_robots(&a_from_b, &pairs, &m, [&names[0], &names[1]])
+        .into_iter()
+        .collect();
     Ok((
         VerifyReport {
             n: m.n,
@@ -2633,6 +2651,7 @@ pub fn verify_pair(
             iso9283: repeated_locations(&a_from_b, touches)?,
             bound_check: Some(touch_bound_check(&m.bound_check)),
             verdict: None,
+            findings,
         },
         m,
     ))

@@ -276,3 +276,51 @@ fn swapped_camera_blocks_are_named() {
     );
     assert!(!result_verdict(&r, DEFAULT_TOLERANCE_MM).pass);
 }
+
+/// The robot folders of robot1 and robot3 swapped (their camera blocks left
+/// where they were): the result's `T_robot1_robot3` is then the inverse of
+/// what the touch file (columns: robot1's base, robot3's) measures. `verify`
+/// names the swap and fails; the same check on the unswapped set says
+/// nothing. (Robots 1 and 3 stand at a quarter turn, far from a transform
+/// that is its own inverse.)
+#[test]
+fn robot_folders_swapped_are_named_by_the_touches() {
+    let name = "sim-checkerboard-3x12";
+    let touches =
+        b2b_dataset::read_touch_points(&bundled(name).join("touch_points_robot1_robot3.csv"))
+            .unwrap();
+    let check = |dir: &std::path::Path| {
+        let result = run(dir).unwrap().result;
+        let (report, m) =
+            b2b_pipeline::verify_pair(&result, Some(("robot1", "robot3")), &touches, 0.3e-3)
+                .unwrap();
+        let verdict = causes::verify_verdict(&report, &m, DEFAULT_TOLERANCE_MM);
+        (report, verdict)
+    };
+    let (_tmp, good) = copy(name);
+    let (report, verdict) = check(&good);
+    assert!(report.findings.is_empty(), "{:#?}", report.findings);
+    assert!(verdict.pass, "{verdict:?}");
+
+    let (_tmp2, dir) = copy(name);
+    let tmp = dir.join("swap");
+    std::fs::rename(dir.join("robot1"), &tmp).unwrap();
+    std::fs::rename(dir.join("robot3"), dir.join("robot1")).unwrap();
+    std::fs::rename(&tmp, dir.join("robot3")).unwrap();
+    let (report, verdict) = check(&dir);
+    eprintln!("{:#?}", report.findings);
+    let named = report
+        .findings
+        .iter()
+        .find(|f| f.kind == kind::SWAPPED_ROBOTS && f.fails)
+        .unwrap_or_else(|| panic!("not named: {report:#?}"));
+    assert!(
+        named
+            .message
+            .contains("robot1 and robot3 are the other way round"),
+        "{}",
+        named.message
+    );
+    assert!(!verdict.pass);
+    assert!(verdict.reasons.iter().any(|r| r == &named.message));
+}

@@ -450,6 +450,10 @@ pub struct VerifyReport {
     /// Absent in files of older versions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub verdict: Option<Verdict>,
+    /// Named causes the touches show (`swapped_robots`: the touches fit the
+    /// result inverted). Empty (and left out of the JSON) when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub findings: Vec<Finding>,
 }
 
 /// See [`VerifyReport::bound_check`].

@@ -207,6 +207,13 @@ pub const HISTORY_QUERY_TIMEOUT: Duration = Duration::from_secs(2);
 /// waited for by re-asking.
 pub const FRUITLESS_QUERIES: u32 = 3;
 
+/// How long, once every robot that sent captures has finished, a run without
+/// `--robots` waits for robots heard only through statuses before it leaves
+/// them out, naming them: longer than an agent takes from its first status
+/// to its first capture, well under the 10 s an operator waits past the last
+/// agent.
+pub const STATUS_ONLY_GRACE: Duration = Duration::from_secs(5);
+
 /// Computes the result from what the store holds.
 pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationResult> {
     let ids = match &opts.order {
@@ -408,11 +415,25 @@ fn collect_and_solve(
     let mut gather = Gathering::default();
     let mut last_check = Instant::now();
     let mut last_report = Instant::now();
+    let mut solve_with = None;
     loop {
         if stop.load(Ordering::SeqCst)
             || (store.complete(opts.order.as_deref(), opts.robots)
                 && gather.not_echoing(store, opts).is_empty())
         {
+            break;
+        }
+        if let Some((with, without)) = gather.without_status_only(store, opts, Instant::now()) {
+            let text = format!(
+                "not waiting for {}: heard only through statuses, no capture of theirs arrived \
+                 nor is in their history {} s after the others finished (a stray or forged \
+                 status? give --robots to name the robots of the run)",
+                without.join(", "),
+                STATUS_ONLY_GRACE.as_secs()
+            );
+            eprintln!("coordinator: {text}");
+            tracing::warn!("{text}");
+            solve_with = Some(with);
             break;
         }
         if last_report.elapsed() >= WAIT_REPORT_PERIOD {
@@ -449,6 +470,17 @@ fn collect_and_solve(
             }
         }
     }
+    let narrowed;
+    let opts = match solve_with {
+        Some(with) => {
+            narrowed = RunOptions {
+                order: Some(with),
+                ..opts.clone()
+            };
+            &narrowed
+        }
+        None => opts,
+    };
     let result = match compute(store, opts) {
         Ok(result) => result,
         Err(e) => {
@@ -511,6 +543,9 @@ struct Gathering {
     unbound: std::collections::BTreeSet<String>,
     /// History queries in a row that brought a robot nothing new.
     fruitless: std::collections::BTreeMap<String, u32>,
+    /// Since when every robot holding captures is done while others were
+    /// heard only through statuses ([`Gathering::without_status_only`]).
+    status_only_since: Option<Instant>,
 }
 
 impl Gathering {
@@ -542,6 +577,39 @@ impl Gathering {
     fn answered(&mut self, robot: &str, anything_new: bool) {
         let n = self.fruitless.entry(robot.to_owned()).or_default();
         *n = if anything_new { 0 } else { *n + 1 };
+    }
+
+    /// Without `--robots`: once every robot holding captures has finished
+    /// (at least [`RunOptions::robots`] of them, each echoing the session) while the
+    /// others were heard only through statuses (no capture of theirs arrived
+    /// nor is in their history), and [`STATUS_ONLY_GRACE`] has passed since,
+    /// the robots to solve with and those left out. A stray or forged status
+    /// of a robot that sends nothing cannot hold the run.
+    fn without_status_only(
+        &mut self,
+        store: &Store,
+        opts: &RunOptions,
+        now: Instant,
+    ) -> Option<(Vec<String>, Vec<String>)> {
+        if opts.order.is_some() {
+            return None;
+        }
+        let (with, without): (Vec<String>, Vec<String>) = store
+            .robots()
+            .into_iter()
+            .chain(self.unbound.iter().cloned())
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .partition(|r| store.capture_count(r) > 0);
+        let ready = !without.is_empty()
+            && store.complete(Some(&with), opts.robots)
+            && with.iter().all(|r| self.echoed.contains(r));
+        if !ready {
+            self.status_only_since = None;
+            return None;
+        }
+        let since = *self.status_only_since.get_or_insert(now);
+        (now.duration_since(since) >= STATUS_ONLY_GRACE).then_some((with, without))
     }
 
     /// The robots of the run whose statuses have not echoed its session.

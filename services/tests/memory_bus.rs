@@ -209,6 +209,26 @@ fn run_beside(
     method: b2b_pipeline::B2bMethod,
     meddle: impl FnOnce(&AtomicBool) + Send,
 ) -> Outcome {
+    run_beside_as(
+        bus,
+        dir,
+        data,
+        method,
+        Some(vec!["robot1".into(), "robot2".into()]),
+        meddle,
+    )
+}
+
+/// [`run_beside`] with the coordinator's `--robots` (`None`: every robot
+/// heard from).
+fn run_beside_as(
+    bus: Arc<dyn Bus>,
+    dir: &Path,
+    data: &Path,
+    method: b2b_pipeline::B2bMethod,
+    order: Option<Vec<String>>,
+    meddle: impl FnOnce(&AtomicBool) + Send,
+) -> Outcome {
     let stop = Arc::new(AtomicBool::new(false));
     let done = Arc::new(AtomicBool::new(false));
     let fired = watchdog(
@@ -218,10 +238,7 @@ fn run_beside(
     );
     let outcome = std::thread::scope(|s| {
         let coordinator = s.spawn(|| {
-            let mut opts = coordinator_options(
-                &dir.join("coordinator"),
-                Some(vec!["robot1".into(), "robot2".into()]),
-            );
+            let mut opts = coordinator_options(&dir.join("coordinator"), order);
             opts.method = method;
             let out = run_on(&*bus, &opts, &stop);
             done.store(true, Ordering::SeqCst);
@@ -439,6 +456,54 @@ fn a_forged_status_count_neither_stalls_nor_floods_the_run() {
         queries <= bound,
         "{queries} history queries (at most {bound})"
     );
+}
+
+/// Without `--robots`, a forged status of a robot that does not exist
+/// ("robot9 capturing, 999 published", in this run's session) over and over:
+/// once both real agents have finished, the coordinator leaves robot9 out
+/// (it never sent a capture, its history serves none) and gives the offline
+/// result of the two, which both agents receive. Before, it waited for
+/// robot9 for ever.
+#[test]
+fn a_forged_status_of_an_unknown_robot_does_not_hold_a_run_without_robots() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = Arc::new(Tampered::default());
+    let sessions = bus.subscribe(&session_key()).unwrap();
+    let forger = Arc::clone(&bus);
+    let (now, agents) = run_beside_as(
+        bus.clone(),
+        dir.path(),
+        &dataset(),
+        b2b_pipeline::B2bMethod::Board,
+        None,
+        move |done| {
+            let bus = forger;
+            let session = announced_session(&*sessions);
+            let forged = AgentStatus {
+                state: AgentState::Capturing,
+                good: 999,
+                rejected: 0,
+                published: 999,
+                rotation_diversity_deg: 90.0,
+                enough_data: true,
+                message: "forged".into(),
+            };
+            while !done.load(Ordering::SeqCst) {
+                let e = Envelope::new("robot9", 1 << 50, forged.clone()).in_session(Some(&session));
+                b2b_services::bus::publish(&*bus, "b2b/agent/robot9/status", &e).unwrap();
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        },
+    );
+    let (result, counters) = now.unwrap();
+    assert_eq!(counters.conflicts, 0);
+    common::assert_same(
+        &result,
+        &common::offline_result_of(dir.path(), &dataset(), "board"),
+    );
+    for got in agents {
+        assert_eq!(got.unwrap().as_ref(), Some(&result));
+    }
 }
 
 /// A solve that fails (the RGB-D method on captures without depth) is
