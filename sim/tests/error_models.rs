@@ -12,7 +12,24 @@
 //! - `c` a rotation about the base origin, `delta * base_from_flange`;
 //! - `d` joint encoder noise through the kinematics;
 //! - `e` systematic DH errors (drawn once per arm, the same at every capture);
-//! - `f` structure `a` plus one (15 captures) or two (30) gross typo rows.
+//! - `f` structure `a` plus one (15 captures) or two (30) gross typo rows;
+//!
+//! and, as real arms err and the structures above miss (checkerboard, 30
+//! captures only), each through the published iiwa kinematics, the arm
+//! standing at joint angles other than those it reports:
+//!
+//! - `g` joint zero offsets (drawn once per arm, 0.004° per joint at 1x);
+//! - `h` joint compliance under gravity: each joint yields by its gravity
+//!   torque (link masses of the iiwa 14's published model, a 0.6 kg camera at
+//!   the flange) times a compliance of 2e-6 rad/Nm at 1x, so the error
+//!   depends on the pose;
+//! - `i` gear backlash: each joint off by half its play (0.004° at 1x) in the
+//!   direction it last moved, so the error depends on the approach;
+//! - `j` a time skew between the exposure and the flange pose: 1 ms at 1x of
+//!   a capture taken on the fly, moving towards the next view in 2 s.
+//!
+//! Link length errors are in `e`. `e` and `g`-`j` have no random model, so
+//! their "limit" is the fit to the true flange poses (a bound).
 //!
 //! "1x" is the iiwa's repeatability as the project configures it (0.05 mm and
 //! 0.01° per axis); for `d` a joint noise giving about that at the flange
@@ -69,6 +86,10 @@ enum Structure {
     Encoder,
     Dh,
     Typo,
+    JointOffsets,
+    Gravity,
+    Backlash,
+    TimeSkew,
 }
 
 impl Structure {
@@ -80,7 +101,30 @@ impl Structure {
             Structure::Encoder => "d encoder",
             Structure::Dh => "e DH",
             Structure::Typo => "f typo rows",
+            Structure::JointOffsets => "g joint zeros",
+            Structure::Gravity => "h gravity",
+            Structure::Backlash => "i backlash",
+            Structure::TimeSkew => "j time skew",
         }
+    }
+
+    /// No random model describes it: the limit is the fit to the true
+    /// flange poses, and the covariance is not expected to hold it.
+    fn systematic(&self) -> bool {
+        !matches!(
+            self,
+            Structure::BaseAxes
+                | Structure::Tool
+                | Structure::BaseOrigin
+                | Structure::Encoder
+                | Structure::Typo
+        )
+    }
+
+    /// The real-arm structures `g`-`j`, studied on the checkerboard with 30
+    /// captures only.
+    fn real_arm(&self) -> bool {
+        self.systematic() && *self != Structure::Dh
     }
 }
 
@@ -96,6 +140,39 @@ const ENCODER_1X_DEG: f64 = 0.004;
 const DH_LENGTH_1X: f64 = 0.03e-3;
 const DH_ANGLE_1X_DEG: f64 = 0.002;
 const PIXEL_SIGMA: f64 = 0.15;
+const JOINT_OFFSET_1X_DEG: f64 = 0.004;
+/// rad per N m: the part of the joints' yield the controller leaves.
+const COMPLIANCE_1X: f64 = 2e-6;
+const BACKLASH_1X_DEG: f64 = 0.004;
+const TIME_SKEW_1X_S: f64 = 1e-3;
+/// How long a move to the next view takes (s).
+const MOVE_S: f64 = 2.0;
+/// The iiwa 14's link masses (kg), links 1 to 7, and the camera's at the
+/// flange.
+const LINK_MASS_KG: [f64; 7] = [4.0, 4.0, 3.0, 2.7, 1.7, 1.8, 0.3];
+const PAYLOAD_KG: f64 = 0.6;
+
+/// Each joint's gravity torque (N m) at `q`: the gradient of the arm's
+/// potential energy, each link's mass at the middle of its two joint frames.
+fn gravity_torque(arm: &Arm, q: &Joints) -> [f64; 7] {
+    let potential = |q: &Joints| {
+        let f = arm.frames(q);
+        let mut v = 0.0;
+        for (i, m) in LINK_MASS_KG.iter().enumerate() {
+            let a = f[i + 1].translation.vector;
+            let b = f[(i + 2).min(7)].translation.vector;
+            v += m * 9.81 * 0.5 * (a.z + b.z);
+        }
+        v + PAYLOAD_KG * 9.81 * f[7].translation.vector.z
+    };
+    std::array::from_fn(|i| {
+        let h = 1e-6;
+        let (mut a, mut b) = (*q, *q);
+        a[i] += h;
+        b[i] -= h;
+        (potential(&a) - potential(&b)) / (2.0 * h)
+    })
+}
 
 fn gauss(rng: &mut ChaCha8Rng) -> f64 {
     let u1: f64 = rng.random::<f64>().max(1e-300);
@@ -392,9 +469,33 @@ fn make_robot(
         typos: vec![],
         true_arm: true_arm.clone(),
     };
-    for v in &g.views[r] {
+    for (k, v) in g.views[r].iter().enumerate() {
         let q = v.q;
         let fk = nominal.fk(&q);
+        // Where the arm really stands for `g`-`j` (the joints it reports: `q`).
+        let before = if k == 0 {
+            Arm::comfortable()
+        } else {
+            g.views[r][k - 1].q
+        };
+        let after = g.views[r].get(k + 1).map_or(q, |v| v.q);
+        let dq: [f64; 7] = match structure {
+            Structure::JointOffsets => std::array::from_fn(|i| {
+                magnitude * JOINT_OFFSET_1X_DEG.to_radians() * g.dh[r][4 * i + 3]
+            }),
+            Structure::Gravity => {
+                let tau = gravity_torque(&nominal, &q);
+                std::array::from_fn(|i| -magnitude * COMPLIANCE_1X * tau[i])
+            }
+            Structure::Backlash => std::array::from_fn(|i| {
+                0.5 * magnitude * BACKLASH_1X_DEG.to_radians() * (q[i] - before[i]).signum()
+            }),
+            // The image is of `q`; the pose read TIME_SKEW later, on the way on.
+            Structure::TimeSkew => {
+                std::array::from_fn(|i| -magnitude * TIME_SKEW_1X_S * (after[i] - q[i]) / MOVE_S)
+            }
+            _ => [0.0; 7],
+        };
         let delta = Vector6::new(
             sr * v.delta[0],
             sr * v.delta[1],
@@ -430,6 +531,13 @@ fn make_robot(
                 (fk, nominal.fk(&qm), j * j.transpose() * sq * sq)
             }
             Structure::Dh => (true_arm.fk(&q), fk, Matrix6::zeros()),
+            Structure::JointOffsets
+            | Structure::Gravity
+            | Structure::Backlash
+            | Structure::TimeSkew => {
+                let q_true: Joints = std::array::from_fn(|i| q[i] + dq[i]);
+                (nominal.fk(&q_true), fk, Matrix6::zeros())
+            }
         };
         let camera_from_target = (true_flange * flange_from_camera).inverse() * base_from_target;
         let mut obs: Vec<(usize, Point2<f64>)> = Vec::new();
@@ -654,7 +762,7 @@ fn limit(p: &Problem, structure: Structure) -> Iso3 {
                 continue;
             }
             let mut c = c.clone();
-            if structure == Structure::Dh {
+            if structure.systematic() {
                 c.base_from_flange = robot.true_base_from_flange[i];
             }
             caps[r].push(c);
@@ -662,7 +770,7 @@ fn limit(p: &Problem, structure: Structure) -> Iso3 {
         }
     }
     let options = RefineOptions {
-        noise: if structure == Structure::Dh {
+        noise: if structure.systematic() {
             NoiseModel::Fixed(NoiseFrame::Base)
         } else {
             NoiseModel::PerCapture(covs)
@@ -1053,8 +1161,13 @@ fn study(structure: Structure) {
     let mut check_lines = Vec::new();
     let mut touch_lines = Vec::new();
     let mut touch_pooled: Vec<(f64, f64, f64)> = vec![];
-    for board in [Board::Checkerboard, Board::Charuco] {
-        for n in [15, 30] {
+    let (boards, counts): (&[Board], &[usize]) = if structure.real_arm() {
+        (&[Board::Checkerboard], &[30])
+    } else {
+        (&[Board::Checkerboard, Board::Charuco], &[15, 30])
+    };
+    for &board in boards {
+        for &n in counts {
             for m in MAGNITUDES {
                 let r = run_cell(structure, m, n, board, seeds());
                 let (best_k, best) = r
@@ -1079,7 +1192,7 @@ fn study(structure: Structure) {
                     "| {cell} | {:.3} | {:.3}{} | {:.3} ({}) | {:.2} | {:.2} | {:.3} / {:.3} | {:.0}% | {} |",
                     r.default_mean * 1e3,
                     r.limit_mean * 1e3,
-                    if structure == Structure::Dh { " bound" } else { "" },
+                    if structure.systematic() { " bound" } else { "" },
                     best * 1e3,
                     CLOSED[best_k],
                     r.default_mean / best,
@@ -1157,7 +1270,7 @@ fn study(structure: Structure) {
                         best * 1e3
                     ));
                 }
-                if structure != Structure::Dh {
+                if !structure.systematic() {
                     if worse(1.25, &|s| s.1) {
                         failures.push(format!(
                             "{cell}: default {:.4} mm > 1.25 x limit {:.4} mm",
@@ -1271,7 +1384,7 @@ fn study(structure: Structure) {
                 "DH: offset beyond chance in {offset_flags} of {checks}, scatter in {scatter_flags}, accepted results' coverage {accepted}: update the README"
             ));
         }
-    } else if (offset_flags + scatter_flags) * 50 > checks {
+    } else if !structure.systematic() && (offset_flags + scatter_flags) * 50 > checks {
         // A right (or conservative) error model is called wrong in 1% of
         // checks; README: none of 288 per structure.
         failures.push(format!(
@@ -1329,8 +1442,29 @@ fn study(structure: Structure) {
             (0.63 / 1.5..0.9).contains(&pooled),
             "DH coverage {pooled}: update the README"
         );
-    } else if !(0.90..=0.995).contains(&pooled) {
+    } else if !structure.systematic() && !(0.90..=0.995).contains(&pooled) {
         failures.push(format!("pooled coverage {pooled}"));
+    }
+    if structure.real_arm() {
+        // docs/accuracy.md: pooled coverage g 64%, h 33% (flange poses alone
+        // do not show a pose-dependent kinematic error, so the bound cannot
+        // hold it), i 99%, j 99% (errors that vary from capture to capture:
+        // the noise model sees them). Held within 1.5x; g and h below honest
+        // so that the caveat cannot go stale, i and j honest.
+        let stated: f64 = match structure {
+            Structure::JointOffsets => 0.637,
+            Structure::Gravity => 0.332,
+            Structure::Backlash => 0.993,
+            _ => 0.992,
+        };
+        let honest = matches!(structure, Structure::Backlash | Structure::TimeSkew);
+        let within = (stated / 1.5..=(stated * 1.5).min(1.0)).contains(&pooled);
+        if !within || honest != (pooled >= 0.90) {
+            failures.push(format!(
+                "{}: pooled coverage {pooled} (docs/accuracy.md: {stated})",
+                structure.label()
+            ));
+        }
     }
     // README: the predicted p95 at or above the true one in 59 of the 60 cells
     // of a-d and f, the one below (in c) at 0.99x.
@@ -1371,4 +1505,24 @@ fn structure_e_dh() {
 #[test]
 fn structure_f_typo_rows() {
     study(Structure::Typo);
+}
+
+#[test]
+fn structure_g_joint_zero_offsets() {
+    study(Structure::JointOffsets);
+}
+
+#[test]
+fn structure_h_gravity_compliance() {
+    study(Structure::Gravity);
+}
+
+#[test]
+fn structure_i_backlash() {
+    study(Structure::Backlash);
+}
+
+#[test]
+fn structure_j_time_skew() {
+    study(Structure::TimeSkew);
 }
