@@ -12,6 +12,10 @@
 //! - [`spread_finding`]: the covariance widened beyond chance.
 //! - [`check_multimarker_units`]: marker widths written in metres where the
 //!   file format has millimetres.
+//! - [`is_depth_scaled`]: RGB-D depth at another scale than the robot's
+//!   motion ([`crate::depth_checks`]), refused
+//!   ([`PipelineError::DepthScale`]), as depth images of another camera are
+//!   ([`PipelineError::DepthNotOfColour`]).
 
 use std::path::Path;
 
@@ -24,6 +28,7 @@ use b2b_calib::metrics::TouchMetrics;
 use b2b_protocol::{CalibrationResult, Finding, Verdict, VerifyReport};
 use b2b_vision::MultimarkerConfig;
 
+use crate::depth_checks::DepthScale;
 use crate::{PipelineError, RobotObservations, SpreadCheck};
 
 /// The default tolerance: the largest acceptable p95 touch error (mm). See
@@ -226,6 +231,14 @@ pub fn is_scaled(f: &PositionFit) -> bool {
         && (f.scale_across - 1.0).signum() == (f.scale - 1.0).signum()
         && (f.scale_across - f.scale).abs()
             <= SCALE_MIN_SIGMAS * f.scale_across_sigma + SCALE_MIN_REL
+}
+
+/// Whether a robot's depth scale is beyond its uncertainty: off 1 by more
+/// than [`SCALE_MIN_SIGMAS`] standard errors and [`SCALE_MIN_REL`], as the
+/// board's scale.
+pub fn is_depth_scaled(s: &DepthScale) -> bool {
+    let off = (s.scale - 1.0).abs();
+    off > SCALE_MIN_REL && off > SCALE_MIN_SIGMAS * s.scale_sigma
 }
 
 /// The fit of one robot's captures the findings come from (the captures of

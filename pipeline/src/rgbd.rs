@@ -3,6 +3,10 @@
 //! images themselves; the hand-eyes come from the caller (or, in
 //! [`rgbd_base_to_base`], from the dataset's board through [`crate::hand_eye`]).
 //!
+//! 0. Per robot, its depth against its colour images and its motion
+//!    ([`crate::depth_checks`]): depth of another camera, or at another scale (a
+//!    wrong depth unit), is refused by name; a depth unit that puts the scene
+//!    outside the working range too ([`PipelineError::DepthOutOfRange`]).
 //! 1. Per image: features ([`b2b_vision::features`], SIFT by default).
 //! 2. Per image pair (robot 1 capture i, robot 2 capture j): ratio-test and
 //!    cross-checked matches; each end lifted to 3-D ([`lift_pixel`]: the pixel is
@@ -49,6 +53,7 @@ use b2b_vision::features::{
 };
 use nalgebra::{Matrix6, Point2, Point3, Translation3, Vector3};
 
+use crate::depth_checks::{DepthCheck, check_robot_depth};
 use crate::{HandEyeChoice, PipelineError, RobotSetup, hand_eye, observe_robot};
 
 /// Settings of the RGB-D method.
@@ -247,6 +252,9 @@ pub struct RgbdRun {
     /// The mean over accepted pairs of their inlier points' centroid, in base 1 (m):
     /// the centre of the workspace over which the touch error is predicted.
     pub scene_centre_in_base1: Point3<f64>,
+    /// Each robot's depth against its colour images and its motion
+    /// ([`crate::depth_checks`]).
+    pub depth_checks: Vec<DepthCheck>,
 }
 
 /// Lifts a pixel to a 3-D point in the camera frame, or says why not: outside the
@@ -818,11 +826,86 @@ pub fn load_views(
             Err(e) => rejected.push(reject(crate::error_chain(&e))),
         }
     }
+    check_depth_range(ds, robot, unit, &views, options)?;
     Ok(RobotViews {
         views,
         rejected,
         camera,
     })
+}
+
+/// A robot's views lift fewer than this fraction of their keypoints ...
+pub const RANGE_MIN_LIFTED: f64 = 0.05;
+
+/// ... and the median of its depth images' valid samples, in metres by the
+/// dataset's unit, lies outside the working range: the unit is wrong (a depth
+/// unit slip), refused with the depth the images give and a unit that would
+/// put it at the scene's depth. Reads the depth images again only then.
+fn check_depth_range(
+    ds: &Dataset,
+    robot: &str,
+    unit_m: f64,
+    views: &[RgbdView],
+    options: &RgbdOptions,
+) -> Result<(), PipelineError> {
+    let keypoints: usize = views.iter().map(|v| v.points.len()).sum();
+    let lifted: usize = views
+        .iter()
+        .map(|v| v.points.iter().filter(|p| p.is_some()).count())
+        .sum();
+    if keypoints == 0 || lifted as f64 >= RANGE_MIN_LIFTED * keypoints as f64 {
+        return Ok(());
+    }
+    let Some(data) = ds.robot(robot) else {
+        return Ok(());
+    };
+    let mut samples: Vec<f64> = Vec::new();
+    let mut files = 0usize;
+    for cap in &data.captures {
+        let Some(path) = ds.depth_path(robot, cap) else {
+            continue;
+        };
+        let Ok(depth) = load_depth(&path) else {
+            continue;
+        };
+        files += 1;
+        // Every 7th sample is plenty for a median.
+        samples.extend(
+            depth
+                .data
+                .iter()
+                .step_by(7)
+                .filter(|d| **d != 0)
+                .map(|d| f64::from(*d) * unit_m),
+        );
+    }
+    if samples.is_empty() {
+        return Ok(());
+    }
+    let median_m = median(&mut samples);
+    if median_m >= options.min_depth_m && median_m <= options.max_depth_m {
+        return Ok(());
+    }
+    Err(PipelineError::DepthOutOfRange {
+        robot: robot.to_owned(),
+        manifest: ds.root.join("dataset.json"),
+        unit_m,
+        median_m,
+        files,
+        lifted,
+        keypoints,
+        min_m: options.min_depth_m,
+        max_m: options.max_depth_m,
+    })
+}
+
+/// The folder of `robot`'s first depth image in the dataset.
+fn depth_folder(ds: &Dataset, robot: &str) -> Option<std::path::PathBuf> {
+    let data = ds.robot(robot)?;
+    data.captures
+        .iter()
+        .find_map(|cap| ds.depth_path(robot, cap))
+        .and_then(|p| p.parent().map(std::path::Path::to_path_buf))
 }
 
 /// One robot's views ([`load_views`]), the captures that gave none, and the
@@ -863,7 +946,35 @@ pub fn rgbd_base_to_base_with_hand_eyes(
         flange_from_camera,
         hand_eye_covariance,
         options,
-    )?;
+    )
+    .map_err(|e| match e {
+        PipelineError::DepthNotOfColour {
+            robot,
+            depth_folder: None,
+            evidence,
+        } => PipelineError::DepthNotOfColour {
+            depth_folder: depth_folder(ds, &robot),
+            robot,
+            evidence,
+        },
+        PipelineError::DepthScale {
+            robot,
+            scale,
+            scale_sigma,
+            evidence,
+            unit: None,
+        } => PipelineError::DepthScale {
+            unit: ds
+                .robot_manifest(&robot)
+                .and_then(|m| m.depth_unit_m)
+                .map(|u| (ds.root.join("dataset.json"), u)),
+            robot,
+            scale,
+            scale_sigma,
+            evidence,
+        },
+        other => other,
+    })?;
     run.result.timings_ms.detect = detect_ms;
     run.result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
     Ok(run)
@@ -875,6 +986,12 @@ pub fn rgbd_base_to_base_with_hand_eyes(
 /// reported with the ones no accepted pair used. `cameras` are the views' camera
 /// models, for each view's reprojection RMS under the result
 /// ([`CaptureSummary::per_capture`], see [`view_fits`]).
+///
+/// First each robot's depth is checked against its colour images and its
+/// motion ([`crate::depth_checks`]): depth of another camera is refused
+/// ([`PipelineError::DepthNotOfColour`]), depth at another scale too
+/// ([`PipelineError::DepthScale`]); the checks are kept in
+/// [`RgbdRun::depth_checks`].
 pub fn rgbd_from_views(
     ids: [&str; 2],
     views: [&[RgbdView]; 2],
@@ -887,6 +1004,30 @@ pub fn rgbd_from_views(
     let [v1, v2] = views;
     let start = Instant::now();
     let solve_start = start;
+    // Each robot's depth against its colour images and its motion: depth of
+    // another camera is refused, depth at another scale named.
+    let mut depth_checks = Vec::with_capacity(2);
+    for (k, v) in [v1, v2].into_iter().enumerate() {
+        let check = check_robot_depth(ids[k], v, &flange_from_camera[k], options)?;
+        tracing::debug!(robot = ids[k], scale = ?check.scale, "rgbd depth self-check");
+        if check.mismatch() {
+            return Err(PipelineError::DepthNotOfColour {
+                robot: ids[k].to_owned(),
+                depth_folder: None,
+                evidence: check.describe_mismatch(),
+            });
+        }
+        if let Some(s) = check.scale.filter(crate::causes::is_depth_scaled) {
+            return Err(PipelineError::DepthScale {
+                robot: ids[k].to_owned(),
+                scale: s.scale,
+                scale_sigma: s.scale_sigma,
+                evidence: s.describe(),
+                unit: None,
+            });
+        }
+        depth_checks.push(check);
+    }
     let mut pairs = Vec::new();
     let mut estimates = Vec::new();
     let mut pair_views = Vec::new();
@@ -1098,6 +1239,7 @@ pub fn rgbd_from_views(
         result,
         pairs,
         scene_centre_in_base1: centre,
+        depth_checks,
     })
 }
 

@@ -1,0 +1,193 @@
+//! The RGB-D method's operator mistakes, built from the committed
+//! `sim-rgbd-boxes-2x5`: a robot's depth folder holding the other robot's
+//! depth images is refused by name; depth at another scale (a wrong
+//! `depth_unit_m`) is named with the scale measured against the robot's
+//! motion and fails the verdict. The set as committed is accused of neither.
+
+mod common;
+
+use b2b_calib::Iso3;
+use b2b_calib::pose::left_difference;
+use b2b_calib::refine::{RefineOptions, mahalanobis2};
+use b2b_dataset::{Dataset, load_ground_truth};
+use b2b_pipeline::causes::is_depth_scaled;
+use b2b_pipeline::rgbd::{RgbdOptions, RgbdRun, rgbd_base_to_base};
+use common::{bundled, copy_dir};
+
+const SET: &str = "sim-rgbd-boxes-2x5";
+
+/// A copy of the committed set in a temporary folder.
+fn copy() -> (tempfile::TempDir, std::path::PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    copy_dir(&bundled(SET), &dir);
+    (tmp, dir)
+}
+
+fn truth() -> Iso3 {
+    load_ground_truth(&bundled(SET))
+        .unwrap()
+        .unwrap()
+        .base1_from_base2
+        .unwrap()
+}
+
+/// The truth's Mahalanobis² in the result's own covariance.
+fn m2(result: &b2b_protocol::CalibrationResult) -> f64 {
+    let est = result.base1_from_base2.to_isometry("T").unwrap();
+    let cov = nalgebra::Matrix6::from_fn(|i, j| result.covariance[i][j]);
+    mahalanobis2(&left_difference(&est, &truth()), &cov).unwrap()
+}
+
+/// The method as `coordinator calibrate --method rgbd` runs it, or its error
+/// as one line.
+fn run(dir: &std::path::Path) -> Result<RgbdRun, String> {
+    let ds = Dataset::load(dir).unwrap();
+    rgbd_base_to_base(&ds, &RefineOptions::default(), &RgbdOptions::default())
+        .map_err(|e| b2b_pipeline::error_chain(&e))
+}
+
+fn show(what: &str, run: &RgbdRun) {
+    for c in &run.depth_checks {
+        eprintln!(
+            "{what}: {}: {} of {} evidence pairs agree, scale {:?}",
+            c.robot,
+            c.agreeing(),
+            c.evidence(),
+            c.scale
+        );
+        for p in &c.pairs {
+            eprintln!(
+                "  rows {:?}: {} lifted, {} inliers, rotation off {:?}°, |t| {:.3} m, {}",
+                p.rows,
+                p.lifted,
+                p.inliers,
+                p.rotation_error_rad.map(f64::to_degrees),
+                p.predicted.translation.vector.norm(),
+                p.reason.as_deref().unwrap_or("")
+            );
+        }
+    }
+    eprintln!(
+        "{what}: findings {:#?}; m² {:.1}",
+        run.result.findings,
+        m2(&run.result)
+    );
+}
+
+/// The committed set: every robot's depth registers to its motion, at its
+/// scale; no finding.
+#[test]
+fn the_committed_rgbd_set_is_not_accused() {
+    let r = run(&bundled(SET)).unwrap();
+    show("committed", &r);
+    for c in &r.depth_checks {
+        assert!(!c.mismatch(), "{}", c.describe_mismatch());
+        let s = c.scale.expect("a scale");
+        assert!((s.scale - 1.0).abs() < 0.01, "{}: {s:?}", c.robot);
+        assert!(!is_depth_scaled(&s), "{}: {s:?}", c.robot);
+    }
+    // The truth within the result's covariance.
+    assert!(m2(&r.result) <= 22.5, "m² {}", m2(&r.result));
+}
+
+/// robot1's depth folder holds robot2's depth images (the same names and size).
+#[test]
+fn the_other_robots_depth_is_refused_by_name() {
+    let (_tmp, dir) = copy();
+    let (from, to) = (dir.join("robot2/depth"), dir.join("robot1/depth"));
+    for e in std::fs::read_dir(&from).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
+    match run(&dir) {
+        Ok(r) => {
+            show("swapped", &r);
+            panic!(
+                "a result from robot2's depth as robot1's: m² {:.0}",
+                m2(&r.result)
+            );
+        }
+        Err(text) => {
+            eprintln!("{text}");
+            assert!(
+                text.contains("robot1's depth images do not match its colour images"),
+                "{text}"
+            );
+            assert!(text.contains("robot1/depth"), "{text}");
+        }
+    }
+}
+
+/// Sets robot1's `depth_unit_m` in the copy's manifest.
+fn set_unit(dir: &std::path::Path, unit: f64) {
+    let manifest = dir.join("dataset.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&manifest).unwrap()).unwrap();
+    v["robots"][0]["depth_unit_m"] = serde_json::json!(unit);
+    std::fs::write(&manifest, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+}
+
+/// The number after `prefix` in `text`.
+fn number_after(text: &str, prefix: &str) -> f64 {
+    let at = text
+        .find(prefix)
+        .unwrap_or_else(|| panic!("no '{prefix}' in: {text}"))
+        + prefix.len();
+    let digits: String = text[at..]
+        .chars()
+        .take_while(|c| c.is_ascii_digit() || *c == '.')
+        .collect();
+    digits
+        .parse()
+        .unwrap_or_else(|_| panic!("no number after '{prefix}' in: {text}"))
+}
+
+/// robot1's depth read at another scale (`depth_unit_m` off by 5% either way,
+/// or ten times): refused, with the scale measured against the robot's motion
+/// (within 1%) and the unit that fits it.
+#[test]
+fn depth_at_another_scale_is_refused_with_its_scale() {
+    for scale in [1.05, 0.95, 10.0] {
+        let (_tmp, dir) = copy();
+        set_unit(&dir, 0.001 * scale);
+        let text = match run(&dir) {
+            Ok(r) => {
+                show(&format!("scale {scale}"), &r);
+                panic!("{scale}: a result, m² {:.0}", m2(&r.result));
+            }
+            Err(text) => text,
+        };
+        eprintln!("{scale}: {text}");
+        let measured = number_after(&text, "robot1's depth measures ");
+        assert!(
+            (measured / scale - 1.0).abs() < 0.01,
+            "{scale}: measured {measured}: {text}"
+        );
+        let fits = number_after(&text, "the motion fits ");
+        assert!((fits / 0.001 - 1.0).abs() < 0.01, "{scale}: {text}");
+        assert!(text.contains("dataset.json gives depth_unit_m"), "{text}");
+    }
+}
+
+/// A unit slip that puts the scene outside the working range (a tenth, a
+/// thousand times): nothing lifts; refused with the depth the images give.
+#[test]
+fn depth_outside_the_working_range_is_refused_with_its_unit() {
+    for (scale, median_m) in [(0.1, 0.06), (1000.0, 600.0)] {
+        let (_tmp, dir) = copy();
+        set_unit(&dir, 0.001 * scale);
+        let text = run(&dir).map(|_| ()).unwrap_err();
+        eprintln!("{scale}: {text}");
+        assert!(
+            text.contains("robot1's depth images give a median depth of"),
+            "{text}"
+        );
+        let measured = number_after(&text, "a median depth of ");
+        assert!(
+            measured > median_m * 0.5 && measured < median_m * 2.0,
+            "{scale}: {measured} m: {text}"
+        );
+        assert!(text.contains("Its depth unit is wrong?"), "{text}");
+    }
+}
