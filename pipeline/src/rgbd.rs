@@ -1137,6 +1137,35 @@ pub fn rgbd_from_views(
         let (j1, j2) = (j1 / wsum, j2 / wsum);
         combined.covariance += j1 * c1 * j1.transpose() + j2 * c2 * j2.transpose();
     }
+    // A robot's depth scale off 1 beyond its noise, short of a refusal: the
+    // covariance holds the excess, propagated through the accepted pairs.
+    let mut findings = Vec::new();
+    for (k, check) in depth_checks.iter().enumerate() {
+        let Some(s) = check.scale else { continue };
+        let excess2 = (s.scale - 1.0).powi(2) - (DEPTH_SCALE_NOISE_SIGMAS * s.scale_sigma).powi(2);
+        if excess2 <= 0.0 {
+            continue;
+        }
+        let Some(j) = depth_scale_jacobian(
+            k,
+            &inlier_points,
+            &estimates,
+            &combined.verdicts,
+            views,
+            &flange_from_camera,
+        ) else {
+            continue;
+        };
+        let before = translation_sigma_mm(&combined.covariance);
+        combined.covariance += j * j.transpose() * excess2;
+        findings.push(crate::causes::depth_scale_held(
+            ids[k],
+            &s,
+            excess2.sqrt(),
+            before,
+            translation_sigma_mm(&combined.covariance),
+        ));
+    }
     let mut centre = Vector3::zeros();
     let mut n_centre = 0.0f64;
     for ((idx, c), verdict) in inlier_centres.iter().zip(&combined.verdicts) {
@@ -1231,7 +1260,7 @@ pub fn rgbd_from_views(
         pairs: Vec::new(),
         hand_eye_covariance: Default::default(),
         warnings: Vec::new(),
-        findings: Vec::new(),
+        findings,
         verdict: None,
         model_selection: None,
     };
@@ -1241,6 +1270,67 @@ pub fn rgbd_from_views(
         scene_centre_in_base1: centre,
         depth_checks,
     })
+}
+
+/// A depth scale off 1 by more than this many of its standard errors widens
+/// the result's covariance by the excess (`(s − 1)² − (k σ)²` as a variance of
+/// the scale): within it, the depth is taken at its scale.
+pub const DEPTH_SCALE_NOISE_SIGMAS: f64 = 2.0;
+
+/// The RMS of the translation's standard deviations (mm).
+fn translation_sigma_mm(covariance: &Matrix6<f64>) -> f64 {
+    ((covariance[(3, 3)] + covariance[(4, 4)] + covariance[(5, 5)]) / 3.0)
+        .max(0.0)
+        .sqrt()
+        * 1e3
+}
+
+/// How the result moves per unit of robot `k`'s depth scale (left
+/// perturbation `[ω, v]` of `base1_from_base2`): each accepted pair's inliers
+/// refitted (Umeyama) with robot `k`'s points scaled by 1%, the pairs' changes
+/// averaged with the combination's weights. `None` without an accepted pair.
+fn depth_scale_jacobian(
+    k: usize,
+    inliers: &[PairInliers],
+    estimates: &[(Iso3, usize, f64, f64)],
+    verdicts: &[Result<(), String>],
+    views: [&[RgbdView]; 2],
+    flange_from_camera: &[Iso3; 2],
+) -> Option<nalgebra::Vector6<f64>> {
+    const STEP: f64 = 0.01;
+    let mut sum = nalgebra::Vector6::zeros();
+    let mut wsum = 0.0;
+    for ((p, est), verdict) in inliers.iter().zip(estimates).zip(verdicts) {
+        if verdict.is_err() {
+            continue;
+        }
+        let scaled: Vec<Point3<f64>> = if k == 0 { &p.points1 } else { &p.points2 }
+            .iter()
+            .map(|q| Point3::from(q.coords * (1.0 + STEP)))
+            .collect();
+        let (a, b) = if k == 0 {
+            (&scaled, &p.points2)
+        } else {
+            (&p.points1, &scaled)
+        };
+        let (Ok(c0), Ok(c1)) = (
+            b2b_calib::procrustes::fit_rigid(&p.points1, &p.points2),
+            b2b_calib::procrustes::fit_rigid(a, b),
+        ) else {
+            continue;
+        };
+        let base1_from_camera1 = views[0][p.views[0]].base_from_flange * flange_from_camera[0];
+        let camera2_from_base2 =
+            (views[1][p.views[1]].base_from_flange * flange_from_camera[1]).inverse();
+        let d = left_difference(
+            &(base1_from_camera1 * c1 * camera2_from_base2),
+            &(base1_from_camera1 * c0 * camera2_from_base2),
+        );
+        let w = est.1 as f64;
+        sum += d * w;
+        wsum += w;
+    }
+    (wsum > 0.0).then(|| sum / (wsum * STEP))
 }
 
 /// One fitted pair's inlier matches: which views (indices into robot 1's and robot
