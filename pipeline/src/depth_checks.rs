@@ -67,6 +67,11 @@ pub const MISMATCH_MAX_AGREEING: f64 = 0.25;
 /// scenes within about a metre).
 pub const THRESHOLD_REFERENCE_DEPTH_M: f64 = 1.0;
 
+/// One view's depth is named not matching its colour image when at least
+/// this many evidence pairs hold it, none of them agreeing (and the robot's
+/// other views agree).
+pub const VIEW_MISMATCH_MIN_EVIDENCE: usize = 2;
+
 /// The translations of a registered pair enter the scale fit when the robot's
 /// camera moved at least this far between the views (m).
 pub const SCALE_MIN_MOTION_M: f64 = 0.02;
@@ -176,6 +181,33 @@ impl DepthCheck {
         let evidence = self.evidence();
         evidence >= MISMATCH_MIN_EVIDENCE
             && (self.agreeing() as f64) <= MISMATCH_MAX_AGREEING * evidence as f64
+    }
+
+    /// Why the view of `row` is left out, when its depth alone does not fit:
+    /// at least [`VIEW_MISMATCH_MIN_EVIDENCE`] evidence pairs hold it and none
+    /// agrees, while the robot's other views agree with each other.
+    pub fn mismatched_view(&self, row: usize) -> Option<String> {
+        let with: Vec<&SelfPair> = self
+            .pairs
+            .iter()
+            .filter(|p| p.is_evidence() && p.rows.contains(&row))
+            .collect();
+        let agreeing_elsewhere = self
+            .pairs
+            .iter()
+            .any(|p| p.is_evidence() && p.agrees() && !p.rows.contains(&row));
+        (with.len() >= VIEW_MISMATCH_MIN_EVIDENCE
+            && !with.iter().any(|p| p.agrees())
+            && agreeing_elsewhere)
+            .then(|| {
+                format!(
+                    "its depth does not match its colour image: none of its {} pairs with the \
+                     robot's other views (at least {EVIDENCE_MIN_LIFTED} colour matches that fit \
+                     the robot's motion, with depth) registers to the robot's motion, while the \
+                     other views' pairs do (the depth image of another view or camera?)",
+                    with.len()
+                )
+            })
     }
 
     /// The evidence of [`DepthCheck::mismatch`] in words.

@@ -1048,6 +1048,23 @@ pub fn rgbd_from_views(
                 accepted: false,
                 reason: None,
             };
+            let bad = [
+                depth_checks[0].mismatched_view(a.row),
+                depth_checks[1].mismatched_view(b.row),
+            ];
+            if let Some((k, why)) = bad
+                .iter()
+                .enumerate()
+                .find_map(|(k, w)| w.as_ref().map(|w| (k, w)))
+            {
+                pe.reason = Some(format!(
+                    "{} row {}: {why}",
+                    ids[k],
+                    if k == 0 { a.row } else { b.row }
+                ));
+                pairs.push(pe);
+                continue;
+            }
             let ViewMatches {
                 matches,
                 points1: p1,
@@ -1210,7 +1227,7 @@ pub fn rgbd_from_views(
                 robot: ids[k].to_owned(),
                 image: Some(v.image.clone()),
                 row: Some(v.row),
-                reason: "no accepted image pair (too few inliers with every image of the other robot, or outlier pairs)".into(),
+                reason: depth_checks[k].mismatched_view(v.row).unwrap_or_else(|| "no accepted image pair (too few inliers with every image of the other robot, or outlier pairs)".into()),
             });
         }
     }

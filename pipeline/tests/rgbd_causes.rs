@@ -103,6 +103,9 @@ fn the_committed_rgbd_set_is_not_accused() {
             c.robot
         );
         assert!(!is_depth_scaled(&s), "{}: {s:?}", c.robot);
+        for row in 1..=c.views {
+            assert_eq!(c.mismatched_view(row), None, "{} row {row}", c.robot);
+        }
     }
     assert!(r.result.findings.is_empty(), "{:#?}", r.result.findings);
     // The truth within the result's covariance.
@@ -256,5 +259,37 @@ fn a_small_depth_scale_widens_the_covariance() {
             named[0].message
         );
         assert!(m2 <= 22.5, "{scale}: m² {m2}");
+    }
+}
+
+/// One of robot1's depth images is robot2's (row 3's, then row 5's): that
+/// view is left out by name, the others calibrate, and the truth stays within
+/// the result's covariance.
+#[test]
+fn one_view_with_another_cameras_depth_is_left_out_by_name() {
+    for (name, row) in [("002.png", 3), ("004.png", 5)] {
+        let (_tmp, dir) = copy();
+        std::fs::copy(
+            dir.join("robot2/depth").join(name),
+            dir.join("robot1/depth").join(name),
+        )
+        .unwrap();
+        let r = run(&dir).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let m2 = m2(&r.result);
+        let named: Vec<_> = r
+            .result
+            .captures
+            .rejected
+            .iter()
+            .filter(|c| {
+                c.reason
+                    .contains("its depth does not match its colour image")
+            })
+            .collect();
+        eprintln!("{name}: m² {m2:.1}, {named:#?}");
+        assert_eq!(named.len(), 1, "{name}: {:#?}", r.result.captures.rejected);
+        assert_eq!(named[0].robot, "robot1");
+        assert_eq!(named[0].row, Some(row));
+        assert!(m2 <= 22.5, "{name}: m² {m2}");
     }
 }
