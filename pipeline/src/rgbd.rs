@@ -839,8 +839,9 @@ pub const RANGE_MIN_LIFTED: f64 = 0.05;
 
 /// ... and the median of its depth images' valid samples, in metres by the
 /// dataset's unit, lies outside the working range: the unit is wrong (a depth
-/// unit slip), refused with the depth the images give and a unit that would
-/// put it at the scene's depth. Reads the depth images again only then.
+/// unit slip), refused with the depth the images give (and what it would be
+/// in millimetres, the RealSense default). Reads the depth images again only
+/// then.
 fn check_depth_range(
     ds: &Dataset,
     robot: &str,
