@@ -12,6 +12,11 @@
 //! - [`spread_finding`]: the covariance widened beyond chance.
 //! - [`check_multimarker_units`]: marker widths written in metres where the
 //!   file format has millimetres.
+//! - [`is_depth_scaled`]: RGB-D depth at another scale than the robot's
+//!   motion ([`crate::depth_checks`]), refused
+//!   ([`PipelineError::DepthScale`]), as depth images of another camera are
+//!   ([`PipelineError::DepthNotOfColour`]); [`depth_scale_held`]: a smaller
+//!   scale error, held by the result's covariance.
 
 use std::path::Path;
 
@@ -24,6 +29,7 @@ use b2b_calib::metrics::TouchMetrics;
 use b2b_protocol::{CalibrationResult, Finding, Verdict, VerifyReport};
 use b2b_vision::MultimarkerConfig;
 
+use crate::depth_checks::DepthScale;
 use crate::{PipelineError, RobotObservations, SpreadCheck};
 
 /// The default tolerance: the largest acceptable p95 touch error (mm). See
@@ -48,6 +54,7 @@ pub mod kind {
     pub const SPREAD: &str = "spread_beyond_chance";
     pub const INTRINSICS: &str = "intrinsics";
     pub const SWAPPED_ROBOTS: &str = "swapped_robots";
+    pub const DEPTH_SCALE: &str = "depth_scale";
 }
 
 /// The 95th percentile of `values` (nearest rank).
@@ -282,6 +289,44 @@ pub fn is_scaled(f: &PositionFit) -> bool {
         && (f.scale_across - 1.0).signum() == (f.scale - 1.0).signum()
         && (f.scale_across - f.scale).abs()
             <= SCALE_MIN_SIGMAS * f.scale_across_sigma + SCALE_MIN_REL
+}
+
+/// Whether a robot's depth scale is beyond its uncertainty: off 1 by more
+/// than [`SCALE_MIN_SIGMAS`] standard errors and [`SCALE_MIN_REL`], as the
+/// board's scale.
+pub fn is_depth_scaled(s: &DepthScale) -> bool {
+    let off = (s.scale - 1.0).abs();
+    off > SCALE_MIN_REL && off > SCALE_MIN_SIGMAS * s.scale_sigma
+}
+
+/// A robot's depth scale off 1 beyond its noise but short of a refusal
+/// ([`is_depth_scaled`]), held by the result's covariance: a finding that
+/// informs (the widened covariance carries it into the predicted error and
+/// the verdict). `held` is the scale error taken into the covariance, `before`
+/// and `after` the translation's standard deviation without and with it (mm).
+pub fn depth_scale_held(
+    robot: &str,
+    s: &DepthScale,
+    held: f64,
+    before_mm: f64,
+    after_mm: f64,
+) -> Finding {
+    Finding {
+        kind: kind::DEPTH_SCALE.to_owned(),
+        robot: Some(robot.to_owned()),
+        row: None,
+        fails: false,
+        message: format!(
+            "{robot}'s depth measures {:.4} ± {:.4} of the robot's motion ({}): beyond its noise, \
+             short of a refusal; the result's covariance holds a depth scale error of {:.2}% \
+             (translation σ {before_mm:.2} mm without it, {after_mm:.2} mm with it). Check the \
+             depth unit and the camera's depth calibration",
+            s.scale,
+            s.scale_sigma,
+            s.describe(),
+            held * 100.0
+        ),
+    }
 }
 
 /// The fit of one robot's captures the findings come from (the captures of

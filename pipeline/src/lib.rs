@@ -50,6 +50,7 @@
 //!   [`VisionError::AmbiguousOrientation`]).
 
 pub mod causes;
+pub mod depth_checks;
 pub mod progress;
 pub mod rgbd;
 mod select;
@@ -124,6 +125,62 @@ pub enum PipelineError {
         captures: String,
         /// The screw axes' fit as given and inverted.
         evidence: String,
+    },
+    /// RGB-D: a robot's depth images do not lift its colour features to points
+    /// that move as the robot moved ([`depth_checks::DepthCheck::mismatch`]).
+    #[error(
+        "{robot}'s depth images do not match its colour images: {evidence}. A depth folder of \
+         another camera or robot{}? Give each robot its own depth images, aligned to its colour \
+         images",
+        .depth_folder.as_ref().map(|f| format!(" ({} holds them)", f.display())).unwrap_or_default()
+    )]
+    DepthNotOfColour {
+        robot: String,
+        /// The folder the depth images came from, when they came from files.
+        depth_folder: Option<PathBuf>,
+        /// The registrations of its views' depth against its motion.
+        evidence: String,
+    },
+    /// RGB-D: a robot's depth at another scale than its motion
+    /// ([`causes::is_depth_scaled`]).
+    #[error(
+        "{robot}'s depth measures {scale:.3} ± {scale_sigma:.4} of the robot's motion ({evidence}): \
+         its depth unit or depth scale is wrong{}",
+        .unit.as_ref().map(|(manifest, unit)| format!(
+            " ({} gives depth_unit_m {unit}; the motion fits {:.6})",
+            manifest.display(),
+            unit / scale
+        )).unwrap_or_default()
+    )]
+    DepthScale {
+        robot: String,
+        scale: f64,
+        scale_sigma: f64,
+        /// The pairs and residuals the scale comes from.
+        evidence: String,
+        /// The manifest and the depth unit it gives, when from a dataset.
+        unit: Option<(PathBuf, f64)>,
+    },
+    /// RGB-D: a robot's depth, read with the dataset's unit, lies outside the
+    /// working range, so its features lift to nothing (a depth unit slip).
+    #[error(
+        "{}: {robot}'s depth images give a median depth of {median_m:.3} m with depth_unit_m \
+         {unit_m} ({files} images), outside the working range {min_m}-{max_m} m: only \
+         {lifted} of its {keypoints} features lift to a point. Its depth unit is wrong? (with \
+         depth_unit_m 0.001, the RealSense default, the median would be {:.3} m)",
+        manifest.display(),
+        median_m / unit_m * 0.001
+    )]
+    DepthOutOfRange {
+        robot: String,
+        manifest: PathBuf,
+        unit_m: f64,
+        median_m: f64,
+        files: usize,
+        lifted: usize,
+        keypoints: usize,
+        min_m: f64,
+        max_m: f64,
     },
     /// A multimarker file whose widths look like metres ([`causes::check_multimarker_units`]).
     #[error(

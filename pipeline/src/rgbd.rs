@@ -3,6 +3,10 @@
 //! images themselves; the hand-eyes come from the caller (or, in
 //! [`rgbd_base_to_base`], from the dataset's board through [`crate::hand_eye`]).
 //!
+//! 0. Per robot, its depth against its colour images and its motion
+//!    ([`crate::depth_checks`]): depth of another camera, or at another scale (a
+//!    wrong depth unit), is refused by name; a depth unit that puts the scene
+//!    outside the working range too ([`PipelineError::DepthOutOfRange`]).
 //! 1. Per image: features ([`b2b_vision::features`], SIFT by default).
 //! 2. Per image pair (robot 1 capture i, robot 2 capture j): ratio-test and
 //!    cross-checked matches; each end lifted to 3-D ([`lift_pixel`]: the pixel is
@@ -49,6 +53,7 @@ use b2b_vision::features::{
 };
 use nalgebra::{Matrix6, Point2, Point3, Translation3, Vector3};
 
+use crate::depth_checks::{DepthCheck, check_robot_depth};
 use crate::{HandEyeChoice, PipelineError, RobotSetup, hand_eye, observe_robot};
 
 /// Settings of the RGB-D method.
@@ -247,6 +252,9 @@ pub struct RgbdRun {
     /// The mean over accepted pairs of their inlier points' centroid, in base 1 (m):
     /// the centre of the workspace over which the touch error is predicted.
     pub scene_centre_in_base1: Point3<f64>,
+    /// Each robot's depth against its colour images and its motion
+    /// ([`crate::depth_checks`]).
+    pub depth_checks: Vec<DepthCheck>,
 }
 
 /// Lifts a pixel to a 3-D point in the camera frame, or says why not: outside the
@@ -818,11 +826,87 @@ pub fn load_views(
             Err(e) => rejected.push(reject(crate::error_chain(&e))),
         }
     }
+    check_depth_range(ds, robot, unit, &views, options)?;
     Ok(RobotViews {
         views,
         rejected,
         camera,
     })
+}
+
+/// A robot's views lift fewer than this fraction of their keypoints ...
+pub const RANGE_MIN_LIFTED: f64 = 0.05;
+
+/// ... and the median of its depth images' valid samples, in metres by the
+/// dataset's unit, lies outside the working range: the unit is wrong (a depth
+/// unit slip), refused with the depth the images give (and what it would be
+/// in millimetres, the RealSense default). Reads the depth images again only
+/// then.
+fn check_depth_range(
+    ds: &Dataset,
+    robot: &str,
+    unit_m: f64,
+    views: &[RgbdView],
+    options: &RgbdOptions,
+) -> Result<(), PipelineError> {
+    let keypoints: usize = views.iter().map(|v| v.points.len()).sum();
+    let lifted: usize = views
+        .iter()
+        .map(|v| v.points.iter().filter(|p| p.is_some()).count())
+        .sum();
+    if keypoints == 0 || lifted as f64 >= RANGE_MIN_LIFTED * keypoints as f64 {
+        return Ok(());
+    }
+    let Some(data) = ds.robot(robot) else {
+        return Ok(());
+    };
+    let mut samples: Vec<f64> = Vec::new();
+    let mut files = 0usize;
+    for cap in &data.captures {
+        let Some(path) = ds.depth_path(robot, cap) else {
+            continue;
+        };
+        let Ok(depth) = load_depth(&path) else {
+            continue;
+        };
+        files += 1;
+        // Every 7th sample is plenty for a median.
+        samples.extend(
+            depth
+                .data
+                .iter()
+                .step_by(7)
+                .filter(|d| **d != 0)
+                .map(|d| f64::from(*d) * unit_m),
+        );
+    }
+    if samples.is_empty() {
+        return Ok(());
+    }
+    let median_m = median(&mut samples);
+    if median_m >= options.min_depth_m && median_m <= options.max_depth_m {
+        return Ok(());
+    }
+    Err(PipelineError::DepthOutOfRange {
+        robot: robot.to_owned(),
+        manifest: ds.root.join("dataset.json"),
+        unit_m,
+        median_m,
+        files,
+        lifted,
+        keypoints,
+        min_m: options.min_depth_m,
+        max_m: options.max_depth_m,
+    })
+}
+
+/// The folder of `robot`'s first depth image in the dataset.
+fn depth_folder(ds: &Dataset, robot: &str) -> Option<std::path::PathBuf> {
+    let data = ds.robot(robot)?;
+    data.captures
+        .iter()
+        .find_map(|cap| ds.depth_path(robot, cap))
+        .and_then(|p| p.parent().map(std::path::Path::to_path_buf))
 }
 
 /// One robot's views ([`load_views`]), the captures that gave none, and the
@@ -863,7 +947,35 @@ pub fn rgbd_base_to_base_with_hand_eyes(
         flange_from_camera,
         hand_eye_covariance,
         options,
-    )?;
+    )
+    .map_err(|e| match e {
+        PipelineError::DepthNotOfColour {
+            robot,
+            depth_folder: None,
+            evidence,
+        } => PipelineError::DepthNotOfColour {
+            depth_folder: depth_folder(ds, &robot),
+            robot,
+            evidence,
+        },
+        PipelineError::DepthScale {
+            robot,
+            scale,
+            scale_sigma,
+            evidence,
+            unit: None,
+        } => PipelineError::DepthScale {
+            unit: ds
+                .robot_manifest(&robot)
+                .and_then(|m| m.depth_unit_m)
+                .map(|u| (ds.root.join("dataset.json"), u)),
+            robot,
+            scale,
+            scale_sigma,
+            evidence,
+        },
+        other => other,
+    })?;
     run.result.timings_ms.detect = detect_ms;
     run.result.timings_ms.total = start.elapsed().as_secs_f64() * 1e3;
     Ok(run)
@@ -875,6 +987,12 @@ pub fn rgbd_base_to_base_with_hand_eyes(
 /// reported with the ones no accepted pair used. `cameras` are the views' camera
 /// models, for each view's reprojection RMS under the result
 /// ([`CaptureSummary::per_capture`], see [`view_fits`]).
+///
+/// First each robot's depth is checked against its colour images and its
+/// motion ([`crate::depth_checks`]): depth of another camera is refused
+/// ([`PipelineError::DepthNotOfColour`]), depth at another scale too
+/// ([`PipelineError::DepthScale`]); the checks are kept in
+/// [`RgbdRun::depth_checks`].
 pub fn rgbd_from_views(
     ids: [&str; 2],
     views: [&[RgbdView]; 2],
@@ -887,6 +1005,30 @@ pub fn rgbd_from_views(
     let [v1, v2] = views;
     let start = Instant::now();
     let solve_start = start;
+    // Each robot's depth against its colour images and its motion: depth of
+    // another camera is refused, depth at another scale named.
+    let mut depth_checks = Vec::with_capacity(2);
+    for (k, v) in [v1, v2].into_iter().enumerate() {
+        let check = check_robot_depth(ids[k], v, &flange_from_camera[k], options)?;
+        tracing::debug!(robot = ids[k], scale = ?check.scale, "rgbd depth self-check");
+        if check.mismatch() {
+            return Err(PipelineError::DepthNotOfColour {
+                robot: ids[k].to_owned(),
+                depth_folder: None,
+                evidence: check.describe_mismatch(),
+            });
+        }
+        if let Some(s) = check.scale.filter(crate::causes::is_depth_scaled) {
+            return Err(PipelineError::DepthScale {
+                robot: ids[k].to_owned(),
+                scale: s.scale,
+                scale_sigma: s.scale_sigma,
+                evidence: s.describe(),
+                unit: None,
+            });
+        }
+        depth_checks.push(check);
+    }
     let mut pairs = Vec::new();
     let mut estimates = Vec::new();
     let mut pair_views = Vec::new();
@@ -907,6 +1049,23 @@ pub fn rgbd_from_views(
                 accepted: false,
                 reason: None,
             };
+            let bad = [
+                depth_checks[0].mismatched_view(a.row),
+                depth_checks[1].mismatched_view(b.row),
+            ];
+            if let Some((k, why)) = bad
+                .iter()
+                .enumerate()
+                .find_map(|(k, w)| w.as_ref().map(|w| (k, w)))
+            {
+                pe.reason = Some(format!(
+                    "{} row {}: {why}",
+                    ids[k],
+                    if k == 0 { a.row } else { b.row }
+                ));
+                pairs.push(pe);
+                continue;
+            }
             let ViewMatches {
                 matches,
                 points1: p1,
@@ -996,6 +1155,35 @@ pub fn rgbd_from_views(
         let (j1, j2) = (j1 / wsum, j2 / wsum);
         combined.covariance += j1 * c1 * j1.transpose() + j2 * c2 * j2.transpose();
     }
+    // A robot's depth scale off 1 beyond its noise, short of a refusal: the
+    // covariance holds the excess, propagated through the accepted pairs.
+    let mut findings = Vec::new();
+    for (k, check) in depth_checks.iter().enumerate() {
+        let Some(s) = check.scale else { continue };
+        let excess2 = (s.scale - 1.0).powi(2) - (DEPTH_SCALE_NOISE_SIGMAS * s.scale_sigma).powi(2);
+        if excess2 <= 0.0 {
+            continue;
+        }
+        let Some(j) = depth_scale_jacobian(
+            k,
+            &inlier_points,
+            &estimates,
+            &combined.verdicts,
+            views,
+            &flange_from_camera,
+        ) else {
+            continue;
+        };
+        let before = translation_sigma_mm(&combined.covariance);
+        combined.covariance += j * j.transpose() * excess2;
+        findings.push(crate::causes::depth_scale_held(
+            ids[k],
+            &s,
+            excess2.sqrt(),
+            before,
+            translation_sigma_mm(&combined.covariance),
+        ));
+    }
     let mut centre = Vector3::zeros();
     let mut n_centre = 0.0f64;
     for ((idx, c), verdict) in inlier_centres.iter().zip(&combined.verdicts) {
@@ -1040,7 +1228,7 @@ pub fn rgbd_from_views(
                 robot: ids[k].to_owned(),
                 image: Some(v.image.clone()),
                 row: Some(v.row),
-                reason: "no accepted image pair (too few inliers with every image of the other robot, or outlier pairs)".into(),
+                reason: depth_checks[k].mismatched_view(v.row).unwrap_or_else(|| "no accepted image pair (too few inliers with every image of the other robot, or outlier pairs)".into()),
             });
         }
     }
@@ -1090,7 +1278,7 @@ pub fn rgbd_from_views(
         pairs: Vec::new(),
         hand_eye_covariance: Default::default(),
         warnings: Vec::new(),
-        findings: Vec::new(),
+        findings,
         verdict: None,
         model_selection: None,
     };
@@ -1098,7 +1286,69 @@ pub fn rgbd_from_views(
         result,
         pairs,
         scene_centre_in_base1: centre,
+        depth_checks,
     })
+}
+
+/// A depth scale off 1 by more than this many of its standard errors widens
+/// the result's covariance by the excess (`(s − 1)² − (k σ)²` as a variance of
+/// the scale): within it, the depth is taken at its scale.
+pub const DEPTH_SCALE_NOISE_SIGMAS: f64 = 2.0;
+
+/// The RMS of the translation's standard deviations (mm).
+fn translation_sigma_mm(covariance: &Matrix6<f64>) -> f64 {
+    ((covariance[(3, 3)] + covariance[(4, 4)] + covariance[(5, 5)]) / 3.0)
+        .max(0.0)
+        .sqrt()
+        * 1e3
+}
+
+/// How the result moves per unit of robot `k`'s depth scale (left
+/// perturbation `[ω, v]` of `base1_from_base2`): each accepted pair's inliers
+/// refitted (Umeyama) with robot `k`'s points scaled by 1%, the pairs' changes
+/// averaged with the combination's weights. `None` without an accepted pair.
+fn depth_scale_jacobian(
+    k: usize,
+    inliers: &[PairInliers],
+    estimates: &[(Iso3, usize, f64, f64)],
+    verdicts: &[Result<(), String>],
+    views: [&[RgbdView]; 2],
+    flange_from_camera: &[Iso3; 2],
+) -> Option<nalgebra::Vector6<f64>> {
+    const STEP: f64 = 0.01;
+    let mut sum = nalgebra::Vector6::zeros();
+    let mut wsum = 0.0;
+    for ((p, est), verdict) in inliers.iter().zip(estimates).zip(verdicts) {
+        if verdict.is_err() {
+            continue;
+        }
+        let scaled: Vec<Point3<f64>> = if k == 0 { &p.points1 } else { &p.points2 }
+            .iter()
+            .map(|q| Point3::from(q.coords * (1.0 + STEP)))
+            .collect();
+        let (a, b) = if k == 0 {
+            (&scaled, &p.points2)
+        } else {
+            (&p.points1, &scaled)
+        };
+        let (Ok(c0), Ok(c1)) = (
+            b2b_calib::procrustes::fit_rigid(&p.points1, &p.points2),
+            b2b_calib::procrustes::fit_rigid(a, b),
+        ) else {
+            continue;
+        };
+        let base1_from_camera1 = views[0][p.views[0]].base_from_flange * flange_from_camera[0];
+        let camera2_from_base2 =
+            (views[1][p.views[1]].base_from_flange * flange_from_camera[1]).inverse();
+        let d = left_difference(
+            &(base1_from_camera1 * c1 * camera2_from_base2),
+            &(base1_from_camera1 * c0 * camera2_from_base2),
+        );
+        let w = est.1 as f64;
+        sum += d * w;
+        wsum += w;
+    }
+    (wsum > 0.0).then(|| sum / (wsum * STEP))
 }
 
 /// One fitted pair's inlier matches: which views (indices into robot 1's and robot

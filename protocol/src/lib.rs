@@ -281,7 +281,8 @@ pub struct CalibrationResult {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Finding {
     /// What kind: `inverted_poses`, `change_point`, `board_scale`,
-    /// `intrinsics`, `multimarker_units`, `spread_beyond_chance`.
+    /// `intrinsics`, `multimarker_units`, `spread_beyond_chance`,
+    /// `depth_scale`; in a verification, `swapped_robots`.
     pub kind: String,
     /// The robot it concerns, when one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
