@@ -583,7 +583,7 @@ impl CaptureNormal {
         // unknown determined to less than 1e-9 of its information cannot go.
         let c = (&c + c.transpose()) * 0.5;
         let eig = c.clone().symmetric_eigenvalues();
-        if eig.iter().any(|v| !(*v > 1e-9)) {
+        if eig.iter().any(|v| v.is_nan() || *v <= 1e-9) {
             return None;
         }
         let kmat = DMatrix::identity(k, k) - &self.jtj * &p_ss;
