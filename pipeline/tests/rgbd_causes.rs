@@ -84,9 +84,10 @@ fn show(what: &str, run: &RgbdRun) {
 fn the_committed_rgbd_set_is_not_accused() {
     let r = run(&bundled(SET)).unwrap();
     show("committed", &r);
-    // docs/verdict.md: 0.9996 ± 0.0011 and 0.9978 ± 0.0016, every evidence
+    // docs/verdict.md: 0.9996 ± 0.0019 and 0.9978 ± 0.0024 (the residuals'
+    // 0.0012 and 0.0018 with the check's own systematic limit), every evidence
     // pair agreeing (9 and 10).
-    for (c, sigma) in r.depth_checks.iter().zip([0.0011, 0.0016]) {
+    for (c, sigma) in r.depth_checks.iter().zip([0.0019, 0.0024]) {
         assert!(!c.mismatch(), "{}", c.describe_mismatch());
         assert!(
             c.evidence() >= 8,
@@ -192,9 +193,9 @@ fn depth_at_another_scale_is_refused_with_its_scale() {
             (measured / scale - 1.0).abs() < 0.01,
             "{scale}: measured {measured}: {text}"
         );
-        // docs/verdict.md: 1.050 ± 0.0012.
+        // docs/verdict.md: 1.050 ± 0.0021.
         let sigma = number_after(&text, " ± ") / scale;
-        assert!(sigma > 0.0008 && sigma < 0.0018, "{scale}: {text}");
+        assert!(sigma > 0.0013 && sigma < 0.003, "{scale}: {text}");
         let fits = number_after(&text, "the motion fits ");
         assert!((fits / 0.001 - 1.0).abs() < 0.01, "{scale}: {text}");
         assert!(text.contains("dataset.json gives depth_unit_m"), "{text}");
@@ -227,7 +228,7 @@ fn depth_outside_the_working_range_is_refused_with_its_unit() {
 /// robot1's depth at a scale off by less than a refusal needs (0.5%, 1%):
 /// measured within 0.2%, named in a finding that informs, and held by the
 /// result's covariance (the truth's m² at most 22.5; without the widening it
-/// was 42 and 110).
+/// was 42 at 0.5%, and holding only the deviation's excess over 2σ left it there).
 #[test]
 fn a_small_depth_scale_widens_the_covariance() {
     for scale in [1.005, 1.01, 0.99] {

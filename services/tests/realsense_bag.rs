@@ -594,8 +594,9 @@ fn the_rgbd_method_calibrates_from_played_back_frames() {
         .unwrap();
     assert!(
         out.status.success(),
-        "calibrate failed: {}",
-        String::from_utf8_lossy(&out.stderr)
+        "calibrate failed: {}\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout)
     );
     let result: b2b_protocol::CalibrationResult =
         serde_json::from_str(&std::fs::read_to_string(&result_file).unwrap()).unwrap();
