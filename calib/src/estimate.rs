@@ -498,7 +498,7 @@ pub fn estimate_bases(
 /// it. Scaling alone shrinks with the capture count, which a systematic error
 /// does not. In the error-model study this raises the coverage under systematic
 /// DH errors from 52% to 62% and leaves the cells with independent errors
-/// within their limits (`sim/tests/error_models.rs`).
+/// within their limits (`sim/benches/error_models.rs`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SplitCheck {
     pub chi2: f64,

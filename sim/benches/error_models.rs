@@ -60,7 +60,8 @@
 //! again with the accuracy it suggests, then checks that result against a
 //! second set of touches.
 //!
-//! `cargo test -p b2b-sim --test error_models -- --nocapture` prints the table.
+//! `cargo bench -p b2b-sim --bench error_models` runs and asserts the study and prints the table
+//! (`cargo test --benches` runs its smoke mode).
 
 use b2b_calib::base_to_base::{BaseToBaseInitial, refine_base_to_base};
 use b2b_calib::camera::CameraModel;
@@ -1477,52 +1478,72 @@ fn study(structure: Structure) {
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
-#[test]
-fn structure_a_base_axes() {
-    study(Structure::BaseAxes);
+/// Every structure, by the name its cells print under.
+const STRUCTURES: [(&str, Structure); 10] = [
+    ("structure_a_base_axes", Structure::BaseAxes),
+    ("structure_b_tool", Structure::Tool),
+    ("structure_c_base_origin", Structure::BaseOrigin),
+    ("structure_d_encoder", Structure::Encoder),
+    ("structure_e_dh", Structure::Dh),
+    ("structure_f_typo_rows", Structure::Typo),
+    ("structure_g_joint_zero_offsets", Structure::JointOffsets),
+    ("structure_h_gravity_compliance", Structure::Gravity),
+    ("structure_i_backlash", Structure::Backlash),
+    ("structure_j_time_skew", Structure::TimeSkew),
+];
+
+/// The smoke mode (`cargo test --benches`, the gate): one cell of every
+/// structure on two seeds, through every estimator, the default's error
+/// finite and within a few millimetres; nothing of the study's statistics.
+fn smoke(structure: Structure) {
+    let n = if structure.real_arm() { 30 } else { 15 };
+    let r = run_cell(structure, 2.0, n, Board::Checkerboard, 2);
+    assert!(
+        r.default_mean.is_finite() && r.default_mean < 5e-3,
+        "{}: default {} m",
+        structure.label(),
+        r.default_mean
+    );
+    assert!(r.limit_mean.is_finite(), "{}: limit", structure.label());
+    println!(
+        "smoke {}: default {:.3} mm, limit {:.3} mm",
+        structure.label(),
+        r.default_mean * 1e3,
+        r.limit_mean * 1e3
+    );
 }
 
-#[test]
-fn structure_b_tool() {
-    study(Structure::Tool);
-}
-
-#[test]
-fn structure_c_base_origin() {
-    study(Structure::BaseOrigin);
-}
-
-#[test]
-fn structure_d_encoder() {
-    study(Structure::Encoder);
-}
-
-#[test]
-fn structure_e_dh() {
-    study(Structure::Dh);
-}
-
-#[test]
-fn structure_f_typo_rows() {
-    study(Structure::Typo);
-}
-
-#[test]
-fn structure_g_joint_zero_offsets() {
-    study(Structure::JointOffsets);
-}
-
-#[test]
-fn structure_h_gravity_compliance() {
-    study(Structure::Gravity);
-}
-
-#[test]
-fn structure_i_backlash() {
-    study(Structure::Backlash);
-}
-
-#[test]
-fn structure_j_time_skew() {
-    study(Structure::TimeSkew);
+/// `cargo bench -p b2b-sim --bench error_models [-- FILTER]` runs the study
+/// (every cell, `B2B_STUDY_SEEDS` seeds, default 24) and asserts it; without
+/// `--bench` (the gate's `cargo test --benches`) the smoke mode. FILTER keeps
+/// the structures whose name contains it (`structure_g`). Two structures at a
+/// time, one per core.
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let full = args.iter().any(|a| a == "--bench");
+    let filter: Vec<&String> = args.iter().filter(|a| !a.starts_with("--")).collect();
+    let chosen: Vec<(&str, Structure)> = STRUCTURES
+        .iter()
+        .copied()
+        .filter(|(name, _)| filter.is_empty() || filter.iter().any(|f| name.contains(f.as_str())))
+        .collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        for _ in 0..2 {
+            scope.spawn(|| {
+                loop {
+                    let k = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    let Some((name, structure)) = chosen.get(k) else {
+                        break;
+                    };
+                    if full {
+                        study(*structure);
+                    } else {
+                        smoke(*structure);
+                    }
+                    println!("{name} ... ok");
+                }
+            });
+        }
+    });
 }
