@@ -15,6 +15,8 @@ pub(crate) fn model_selection(selected: &SelectedRun) -> Option<ModelSelection> 
     tracing::info!(
         chosen = s.chosen.name(),
         spread_scale = selected.spread_scale,
+        fold_scatter = selected.fold_scatter,
+        min_training = s.min_training,
         "estimator chosen by {}-fold cross-validation: {}",
         s.folds,
         s.held_out_px
@@ -31,5 +33,6 @@ pub(crate) fn model_selection(selected: &SelectedRun) -> Option<ModelSelection> 
         held_out_px: held_out,
         folds: s.folds,
         spread_scale: selected.spread_scale,
+        fold_scatter: selected.fold_scatter,
     })
 }

@@ -174,15 +174,25 @@ fn tabb_denso_split() {
 #[test]
 fn visp_franka_split() {
     let s = split("visp-franka-eye-in-hand", &chosen_base1_from_base2());
-    let (f, _) = measure("visp-franka-eye-in-hand", &s);
+    let (f, run) = measure("visp-franka-eye-in-hand", &s);
     // docs/accuracy.md
     within("ours", f.ours_mm, 3.04);
     within("park", f.park_mm, 3.09);
-    within("predicted / true p95", f.ratio(), 9.6);
+    within("predicted / true p95", f.ratio(), 4.9);
     // Three captures per robot in each fold's fit: the refinement's noise model
     // has too little to go on (29.5 px and worse), the closed forms predict the
-    // held-out captures better and Daniilidis best.
+    // held-out captures better and Daniilidis best. Those fits scatter 3.8x the
+    // covariance; near-minimal folds are no evidence for the bound
+    // (`calib/tests/spread_scale.rs`), so it is reported, not applied.
     assert_eq!(f.chosen, "daniilidis");
+    let selection = run
+        .result
+        .model_selection
+        .as_ref()
+        .expect("cross-validated");
+    assert_eq!(selection.spread_scale, None);
+    let scatter = selection.fold_scatter.expect("the folds' scatter");
+    within("folds' scatter", scatter, 3.81);
     within("held-out, chosen", f.held_out_chosen_px, 14.4);
     within("held-out, park", f.held_out_park_px, 14.9);
 }

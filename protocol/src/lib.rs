@@ -338,6 +338,11 @@ pub struct ModelSelection {
     /// not be computed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub spread_scale: Option<f64>,
+    /// The folds' scatter over what the chosen estimate's covariance predicts,
+    /// applied (as `spread_scale`) or not: not where a fold's fit kept too few
+    /// captures of a robot for the scatter to be evidence.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fold_scatter: Option<f64>,
 }
 
 /// One robot's base in the reference robot's base ([`CalibrationResult::bases`]).

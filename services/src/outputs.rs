@@ -435,9 +435,14 @@ fn print_model_selection(m: &b2b_protocol::ModelSelection) {
             .map(|(c, v)| format!("{c} {v:.3}"))
             .collect::<Vec<_>>()
             .join(", "),
-        m.spread_scale.map_or(String::new(), |s| format!(
-            "; covariance scaled by {s:.2} to the folds' scatter"
-        ))
+        match (m.spread_scale, m.fold_scatter) {
+            (Some(s), _) => format!("; covariance scaled by {s:.2} to the folds' scatter"),
+            (None, Some(s)) => format!(
+                "; the folds' scatter ({s:.2}x the covariance) not applied: \
+                 too few captures per fold for it to be evidence"
+            ),
+            (None, None) => String::new(),
+        }
     );
 }
 
