@@ -31,7 +31,7 @@
 //! captures a hand-eye needs (three: two motions). Near that minimum the fits
 //! without a fold are no longer linear in the captures and scatter far more
 //! than the estimate errs: with Gaussian noise of the model's own shape, where
-//! the model's covariance is right by construction (the error's mean χ² 6.2 on
+//! the model's covariance is right by construction (the error's mean χ² 6.3 on
 //! 6 dof), folds keeping 3 captures per robot scatter 5.1x the covariance
 //! (median over 30 problems), folds keeping 12 0.95x
 //! (`calib/tests/spread_scale.rs` asserts both). The scale is applied only where
