@@ -165,6 +165,7 @@ pub fn run_cart(
 
     let settings = scene.render_settings();
     let mut rest: Option<(Joints, Iso3)> = None;
+    let mut rendered: Option<((Iso3, bool), b2b_sim::render::Irradiance)> = None;
     let mut number = 0u64;
     let outcome = (|| -> anyhow::Result<()> {
         let mut next_frame = Instant::now();
@@ -219,9 +220,18 @@ pub fn run_cart(
             } else {
                 &geometry
             };
-            let irradiance = renderer.render(&camera_from_world, world, &settings);
-            let grey = expose(&irradiance, &scene.noise, &mut rng);
-            let depth = scene.depth.map(|m| m.measure(&irradiance, &mut rng));
+            // A still camera in an unchanged scene sees the same irradiance: it is
+            // rendered once and exposed afresh (new sensor noise) every frame.
+            let view = (camera_from_world, target_taken);
+            let irradiance = match &rendered {
+                Some((v, irradiance)) if *v == view => irradiance,
+                _ => {
+                    let irradiance = renderer.render(&camera_from_world, world, &settings);
+                    &rendered.insert((view, irradiance)).1
+                }
+            };
+            let grey = expose(irradiance, &scene.noise, &mut rng);
+            let depth = scene.depth.map(|m| m.measure(irradiance, &mut rng));
             number += 1;
             sink.publish(&RenderedFrame {
                 number,
