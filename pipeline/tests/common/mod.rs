@@ -36,4 +36,5 @@ pub fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
+pub mod opencv_peer;
 pub mod split;

@@ -47,9 +47,27 @@ pub struct Split {
     pub base1_from_base2: Iso3,
 }
 
+/// How a recording's captures are dealt to the two pseudo robots.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Deal {
+    /// Even rows to the first, odd rows to the second: both see the whole
+    /// working volume, so what the arm and camera get wrong alike at nearby
+    /// configurations is alike in both and cancels in `base1_from_base2`.
+    Alternate,
+    /// The first half of the recording to the first, the rest to the second:
+    /// the halves see the working volume along different parts of the path,
+    /// so less of that cancels (closer to two arms, which share nothing).
+    Halves,
+}
+
 /// Splits the shared dataset `name` (one robot) into two pseudo robots, the
-/// second moved by `base1_from_base2`.
+/// second moved by `base1_from_base2`, even and odd rows ([`Deal::Alternate`]).
 pub fn split(name: &str, base1_from_base2: &Iso3) -> Split {
+    split_by(name, base1_from_base2, Deal::Alternate)
+}
+
+/// [`split`] with the captures dealt by `deal`.
+pub fn split_by(name: &str, base1_from_base2: &Iso3, deal: Deal) -> Split {
     let src = shared_dataset(name);
     let original = Dataset::load(&src).unwrap();
     assert_eq!(original.robots.len(), 1, "{name}: one robot expected");
@@ -76,8 +94,12 @@ pub fn split(name: &str, base1_from_base2: &Iso3) -> Split {
             captures: vec![],
         },
     ];
+    let n = original.robots[0].captures.len();
     for (i, c) in original.robots[0].captures.iter().enumerate() {
-        let k = i % 2;
+        let k = match deal {
+            Deal::Alternate => i % 2,
+            Deal::Halves => usize::from(2 * i >= n),
+        };
         let mut c = c.clone();
         if k == 1 {
             c.base_from_flange = base2_from_base1 * c.base_from_flange;
