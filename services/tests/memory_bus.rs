@@ -9,7 +9,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use b2b_calib::refine::RefineOptions;
 use b2b_protocol::messages::{
@@ -75,47 +75,24 @@ fn agents_and_coordinator_on_the_in_process_bus_give_the_offline_result() {
     let dir = tempfile::tempdir().unwrap();
     let bus = Arc::new(MemoryBus::new());
     let results = bus.subscribe(&result_key()).unwrap();
-    // A watchdog: if the loops stall, stop them so that the test fails
-    // instead of hanging.
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = Arc::clone(&stop);
-        std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_secs(180));
-            stop.store(true, Ordering::SeqCst);
-        });
-    }
-    let stop = &*stop;
-    let (coordinator, agents) = std::thread::scope(|s| {
-        let coordinator = s.spawn(|| {
-            let opts = coordinator_options(&dir.path().join("coordinator"), None);
-            run_on(&*bus, &opts, stop).unwrap()
-        });
-        let agents: Vec<_> = ["robot1", "robot2"]
-            .into_iter()
-            .map(|robot| {
-                let bus: Arc<dyn Bus> = bus.clone();
-                let state = dir.path().join(robot);
-                s.spawn(move || {
-                    replay_agent(bus, robot, &state, Duration::from_secs(120), stop).unwrap()
-                })
-            })
-            .collect();
-        (
-            coordinator.join().unwrap(),
-            agents
-                .into_iter()
-                .map(|a| a.join().unwrap())
-                .collect::<Vec<_>>(),
-        )
-    });
-    let (result, counters) = coordinator;
+    // Without `--robots`; the run fails if its watchdog has to stop it (a
+    // stopped coordinator still solves what it has, so a run whose agents
+    // never finished could otherwise look like a good one).
+    let (coordinator, agents) = run_beside_as(
+        bus.clone(),
+        dir.path(),
+        &dataset(),
+        b2b_pipeline::B2bMethod::Board,
+        None,
+        |_| {},
+    );
+    let (result, counters) = coordinator.unwrap();
     assert_eq!(counters.rejected, 0);
     let offline = common::offline_result_of(dir.path(), &dataset(), "board");
     common::assert_same(&result, &offline);
     // Every agent received the coordinator's result, as published.
     for got in agents {
-        assert_eq!(got.as_ref(), Some(&result));
+        assert_eq!(got.unwrap().as_ref(), Some(&result));
     }
     // The result travels in an envelope from the coordinator, like every message.
     let m = results
@@ -170,7 +147,7 @@ fn watchdog(stop: Arc<AtomicBool>, done: Arc<AtomicBool>, limit: Duration) -> Ar
     let fired = Arc::new(AtomicBool::new(false));
     let said = Arc::clone(&fired);
     std::thread::spawn(move || {
-        let start = std::time::Instant::now();
+        let start = Instant::now();
         while !done.load(Ordering::SeqCst) {
             if start.elapsed() > limit {
                 said.store(true, Ordering::SeqCst);
@@ -181,6 +158,17 @@ fn watchdog(stop: Arc<AtomicBool>, done: Arc<AtomicBool>, limit: Duration) -> Ar
         }
     });
     fired
+}
+
+/// Sets its flag when dropped, also while a panic unwinds: a scope's threads
+/// waiting for the flag then end, so that a failed assertion fails the test
+/// instead of leaving the scope waiting for them for ever.
+struct SetOnDrop<'a>(&'a AtomicBool);
+
+impl Drop for SetOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::SeqCst);
+    }
 }
 
 /// The run's session, as the coordinator announces it on `bus`.
@@ -201,7 +189,8 @@ type Outcome = (
 /// A coordinator for robot1 and robot2 and their agents replaying `data`,
 /// threads on `bus`, while `meddle` runs beside them until the coordinator
 /// returns (its argument says when). Fails the test if the watchdog had to
-/// stop anything.
+/// stop anything: it watches until the agents have ended too, so agents that
+/// never finish (or never take the coordinator's answer) fail the run.
 fn run_beside(
     bus: Arc<dyn Bus>,
     dir: &Path,
@@ -230,21 +219,23 @@ fn run_beside_as(
     meddle: impl FnOnce(&AtomicBool) + Send,
 ) -> Outcome {
     let stop = Arc::new(AtomicBool::new(false));
+    // The whole run (the coordinator and both agents) has ended: what the
+    // watchdog waits for. A run takes seconds; the limit only turns a stall
+    // into a failure.
     let done = Arc::new(AtomicBool::new(false));
-    let fired = watchdog(
-        Arc::clone(&stop),
-        Arc::clone(&done),
-        Duration::from_secs(240),
-    );
+    let limit = Duration::from_secs(240);
+    let fired = watchdog(Arc::clone(&stop), Arc::clone(&done), limit);
+    // The coordinator has returned: what `meddle` waits for.
+    let returned = AtomicBool::new(false);
     let outcome = std::thread::scope(|s| {
         let coordinator = s.spawn(|| {
+            // Set however the coordinator ends, a panic included.
+            let _returned = SetOnDrop(&returned);
             let mut opts = coordinator_options(&dir.join("coordinator"), order);
             opts.method = method;
-            let out = run_on(&*bus, &opts, &stop);
-            done.store(true, Ordering::SeqCst);
-            out
+            run_on(&*bus, &opts, &stop)
         });
-        s.spawn(|| meddle(done.as_ref()));
+        s.spawn(|| meddle(&returned));
         let agents: Vec<_> = ["robot1", "robot2"]
             .into_iter()
             .map(|robot| {
@@ -258,17 +249,58 @@ fn run_beside_as(
             })
             .collect();
         let c = coordinator.join().unwrap();
-        // The agents end at once on the coordinator's answer; past this the
-        // watchdog stops them.
+        // The agents end at once on the coordinator's answer; the watchdog
+        // is still running, and stops them if they do not.
         let agents = agents.into_iter().map(|a| a.join().unwrap()).collect();
         done.store(true, Ordering::SeqCst);
         (c, agents)
     });
     assert!(
         !fired.load(Ordering::SeqCst),
-        "the watchdog had to stop the run: it stalled"
+        "the watchdog had to stop the run after {limit:?}: the coordinator or an agent never finished"
     );
     outcome
+}
+
+/// Reads `statuses` until both agents have said they finished and robot2 has
+/// sent `more` statuses since. An error when an agent failed, or when that
+/// did not happen within `limit` (the agents' heartbeats alone would keep a
+/// wait without a limit going for ever).
+fn finished_then_more_of_robot2(
+    statuses: &dyn Inbox,
+    more: usize,
+    limit: Duration,
+) -> Result<(), String> {
+    let deadline = Instant::now() + limit;
+    let mut finished = std::collections::BTreeSet::new();
+    let mut after = 0;
+    while after < more {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let not_yet = || {
+            format!(
+                "within {limit:?} the agents did not both finish and robot2 send {more} \
+                 statuses after: finished {finished:?}, then {after} of robot2's statuses"
+            )
+        };
+        if left.is_zero() {
+            return Err(not_yet());
+        }
+        let m = statuses
+            .recv_timeout(left)
+            .map_err(|e| format!("statuses: {e}"))?
+            .ok_or_else(not_yet)?;
+        let e: Envelope<AgentStatus> = serde_json::from_slice(&m.payload).unwrap();
+        if e.body.state == AgentState::Failed {
+            return Err(format!("{} failed: {}", e.robot, e.body.message));
+        }
+        if finished.len() == 2 && e.robot == "robot2" {
+            after += 1;
+        }
+        if e.body.state == AgentState::Finished {
+            finished.insert(e.robot);
+        }
+    }
+    Ok(())
 }
 
 /// The coordinator computes only once every robot's statuses echo its
@@ -285,7 +317,10 @@ fn the_coordinator_waits_for_every_robot_to_echo_its_session() {
     let statuses = bus.subscribe("b2b/agent/*/status").unwrap();
     let stop = AtomicBool::new(false);
     let agents_stop = AtomicBool::new(false);
-    std::thread::scope(|s| {
+    let (heard, solved, agents) = std::thread::scope(|s| {
+        // However this ends, a panic included, the threads are stopped and
+        // the scope can end.
+        let _stop_all = [SetOnDrop(&agents_stop), SetOnDrop(&stop)];
         let coordinator = s.spawn(|| {
             let order = Some(vec!["robot1".into(), "robot2".into()]);
             run_on(
@@ -294,39 +329,43 @@ fn the_coordinator_waits_for_every_robot_to_echo_its_session() {
                 &stop,
             )
         });
-        for robot in ["robot1", "robot2"] {
-            let bus: Arc<dyn Bus> = bus.clone();
-            let state = dir.path().join(robot);
-            let agents_stop = &agents_stop;
-            s.spawn(move || {
-                let _ = replay_agent(bus, robot, &state, Duration::from_secs(600), agents_stop);
-            });
-        }
-        // Both agents finished, then four more of robot2's statuses.
-        let mut finished = std::collections::BTreeSet::new();
-        let mut after = 0;
-        while after < 4 {
-            let m = statuses
-                .recv_timeout(Duration::from_secs(120))
-                .unwrap()
-                .expect("the agents stopped sending statuses before both finished");
-            let e: Envelope<AgentStatus> = serde_json::from_slice(&m.payload).unwrap();
-            if finished.len() == 2 && e.robot == "robot2" {
-                after += 1;
-            }
-            if e.body.state == AgentState::Finished {
-                finished.insert(e.robot);
-            }
-            assert_ne!(e.body.state, AgentState::Failed, "{}", e.body.message);
-        }
-        assert!(
-            !coordinator.is_finished(),
-            "the coordinator solved without robot2 echoing its session"
-        );
-        stop.store(true, Ordering::SeqCst);
+        let agents: Vec<_> = ["robot1", "robot2"]
+            .into_iter()
+            .map(|robot| {
+                let bus: Arc<dyn Bus> = bus.clone();
+                let state = dir.path().join(robot);
+                let agents_stop = &agents_stop;
+                s.spawn(move || {
+                    replay_agent(bus, robot, &state, Duration::from_secs(600), agents_stop)
+                })
+            })
+            .collect();
+        // A run takes seconds; the limit only turns agents that never finish
+        // into a failure.
+        let heard = finished_then_more_of_robot2(&*statuses, 4, Duration::from_secs(240));
+        let solved = coordinator.is_finished();
+        // The agents first: the coordinator, once stopped, solves what it has
+        // and publishes it, which the agents are not to take.
         agents_stop.store(true, Ordering::SeqCst);
+        let agents: Vec<_> = agents.into_iter().map(|a| a.join().unwrap()).collect();
+        stop.store(true, Ordering::SeqCst);
         let _ = coordinator.join().unwrap();
+        (heard, solved, agents)
     });
+    if let Err(e) = heard {
+        panic!("{e}");
+    }
+    assert!(
+        !solved,
+        "the coordinator solved without robot2 echoing its session"
+    );
+    // Each agent waited for a result until it was stopped, and none came.
+    for (robot, got) in ["robot1", "robot2"].into_iter().zip(agents) {
+        assert!(
+            matches!(got, Ok(None)),
+            "{robot} did not end by the stop without a result: {got:?}"
+        );
+    }
 }
 
 /// `dataset()` copied into `to`, robot1's flange positions moved by 5 cm in x.
@@ -359,14 +398,21 @@ fn an_earlier_runs_captures_replayed_into_a_new_run_are_dropped() {
     // The earlier run, recorded.
     let earlier = Arc::new(MemoryBus::new());
     let recorded = earlier.subscribe("b2b/agent/*/capture").unwrap();
-    let (first, _) = run_beside(
+    let (first, agents) = run_beside(
         earlier.clone(),
         &dir.path().join("earlier"),
         &moved,
         b2b_pipeline::B2bMethod::Board,
         |_| {},
     );
-    first.unwrap();
+    let (first, _) = first.unwrap();
+    for got in agents {
+        assert_eq!(
+            got.unwrap().as_ref(),
+            Some(&first),
+            "the earlier run's agents"
+        );
+    }
     let mut replay = Vec::new();
     while let Some(m) = recorded.recv_timeout(Duration::from_millis(10)).unwrap() {
         replay.push((m.key, m.payload));

@@ -13,6 +13,7 @@
 
 mod common;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::Arc;
@@ -105,20 +106,65 @@ fn record(dir: &Path, camera: &D435, frames: &[D435Frame], timing: &Timing) -> P
     bag
 }
 
-/// The frame numbers after the lead-in.
-fn after_lead_in<'a>(numbers: impl IntoIterator<Item = &'a FrameHeader>) -> Vec<u64> {
-    numbers
-        .into_iter()
-        .map(|h| h.frame_number)
-        .filter(|n| *n > 1)
-        .collect()
+/// What one stream published, in the publisher's order: for each of the
+/// frames the camera says it sent (its summary's `sent`, numbered 1..=sent by
+/// [`FrameHeader::sequence`]), the frame number where this test's reader
+/// received it, `None` where the reader lost it. A reader that polls a real-time
+/// playback on a loaded machine can lose frames (its queue overflows: the
+/// subscriber's `dropped`); that is the reader's slowness, not the camera's.
+fn published(p: &Playback, stream: Stream) -> Vec<Option<u64>> {
+    let (key, received): (&str, Vec<&FrameHeader>) = match stream {
+        Stream::Colour => ("colour", p.colour.iter().collect()),
+        Stream::Depth => ("depth", p.depth.iter().map(|(h, _)| h).collect()),
+    };
+    let sent = p.summary[key]["sent"].as_u64().unwrap();
+    let mut out = vec![None; sent as usize];
+    for h in received {
+        let slot = h
+            .sequence
+            .checked_sub(1)
+            .and_then(|i| out.get_mut(i as usize))
+            .unwrap_or_else(|| {
+                panic!(
+                    "{key} frame {} came as number {} of the publisher's, which says it sent {sent}",
+                    h.frame_number, h.sequence
+                )
+            });
+        *slot = Some(h.frame_number);
+    }
+    out
 }
 
-/// Colour frames without depth, the lead-in's left out (it may have lost its
-/// depth frame, never a later one).
-fn unpaired_after_lead_in(p: &Playback) -> u64 {
-    let lead_in_unpaired = p.colour.iter().any(|h| h.frame_number == 1)
-        && !p.depth.iter().any(|(h, _)| h.frame_number == 1);
+/// Asserts that `stream` published the frames numbered `want` after the
+/// lead-in (frame 1, which it may have lost: see [`with_lead_in`]), no more
+/// and no other, in order. Frames this test's reader lost are known by their
+/// place in the publisher's sequence: the camera's count must still be right,
+/// and every frame the reader did receive must be in its place. Returns
+/// whether the lead-in was published.
+fn assert_published(p: &Playback, stream: Stream, want: &[u64]) -> bool {
+    let published = published(p, stream);
+    let lead_in = published.len() == want.len() + 1;
+    let after = &published[usize::from(lead_in)..];
+    let as_wanted = (!lead_in || matches!(published[0], None | Some(1)))
+        && after.len() == want.len()
+        && after
+            .iter()
+            .zip(want)
+            .all(|(got, want)| got.is_none_or(|n| n == *want));
+    assert!(
+        as_wanted,
+        "{stream:?}: the camera published the frames {published:?} (None: one this test's \
+         reader lost), not {want:?} after the lead-in\n{}",
+        p.stderr
+    );
+    lead_in
+}
+
+/// Colour frames without depth after the lead-in, by the camera's own count
+/// (the lead-in may have lost its depth frame, never a later one);
+/// `lead_in` says which streams published the lead-in, colour then depth.
+fn unpaired_after_lead_in(p: &Playback, lead_in: [bool; 2]) -> u64 {
+    let lead_in_unpaired = lead_in[0] && !lead_in[1];
     p.summary["without_depth"].as_u64().unwrap() - u64::from(lead_in_unpaired)
 }
 
@@ -164,8 +210,12 @@ fn play(bag: &Path) -> Playback {
         .expect("spawn camera");
     let (mut colour, mut colour_data) = (Vec::new(), Vec::new());
     let mut depth_bytes: Vec<(FrameHeader, Vec<u8>)> = Vec::new();
-    let deadline = Instant::now() + Duration::from_secs(60);
+    let limit = Duration::from_secs(60);
+    let deadline = Instant::now() + limit;
     loop {
+        // Looked at before the queues: once the camera has exited and both are
+        // empty, every frame it published that is still queued has been read.
+        let exited = child.try_wait().unwrap().is_some();
         let mut idle = true;
         if let Some(f) = subs[0].next().unwrap() {
             colour.push(*f.header());
@@ -177,18 +227,17 @@ fn play(bag: &Path) -> Playback {
             idle = false;
         }
         if idle {
-            if child.try_wait().unwrap().is_some() {
+            if exited {
                 break;
             }
             std::thread::sleep(Duration::from_millis(2));
         }
-        assert!(Instant::now() < deadline, "the camera did not finish");
+        assert!(
+            Instant::now() < deadline,
+            "the camera did not finish within {limit:?}"
+        );
     }
-    for sub in &subs {
-        let st = sub.stats();
-        assert_eq!(st.dropped, 0, "{st:?}: this test read too slowly");
-    }
-    let depth = depth_bytes
+    let depth: Vec<(FrameHeader, Vec<u16>)> = depth_bytes
         .into_iter()
         .map(|(h, b)| {
             let d = b
@@ -201,7 +250,23 @@ fn play(bag: &Path) -> Playback {
     let out = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(out.status.success(), "camera failed: {stderr}");
-    let summary = serde_json::from_slice(&out.stdout).expect("summary JSON");
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).expect("summary JSON");
+    // Frames the camera sent that this test's reader did not get (it read too
+    // slowly): reported, not a failure; the assertions know them by sequence.
+    for ((sub, key), received) in subs
+        .iter()
+        .zip(["colour", "depth"])
+        .zip([colour.len(), depth.len()])
+    {
+        let sent = summary[key]["sent"].as_u64().unwrap();
+        if sent > received as u64 {
+            eprintln!(
+                "this test's reader lost {} of the {sent} {key} frames the camera sent (it read too slowly; {:?})",
+                sent - received as u64,
+                sub.stats()
+            );
+        }
+    }
     Playback {
         colour,
         colour_data,
@@ -298,7 +363,9 @@ fn a_recorded_d435_plays_through_librealsense_with_its_intrinsics_and_aligned_de
         &truth,
         &Timing::regular(FRAMES + 1, 1000.0, 100.0, 0.4),
     );
+    let before = b2b_frames::now_ns();
     let p = play(&bag);
+    let after = b2b_frames::now_ns();
 
     // What librealsense read from the recording is what was recorded.
     let rec = &p.summary["recorded"];
@@ -328,40 +395,51 @@ fn a_recorded_d435_plays_through_librealsense_with_its_intrinsics_and_aligned_de
         assert!((got - t[i]).abs() < 1e-7, "translation[{i}] {got}");
     }
 
-    // Every frame arrived, in order, with the colour stream's intrinsics; depth
-    // is aligned to colour and carries its colour frame's number.
+    // Every frame was published, in order, with the colour stream's
+    // intrinsics; depth is aligned to colour and carries its colour frame's
+    // number. (The frames received are checked; those this test's reader lost
+    // are counted in their places.)
     let all: Vec<u64> = (2..=FRAMES as u64 + 1).collect();
-    assert_eq!(after_lead_in(&p.colour), all, "{}", p.stderr);
-    assert_eq!(
-        after_lead_in(p.depth.iter().map(|(h, _)| h)),
-        all,
-        "{}",
-        p.stderr
-    );
-    assert_eq!(unpaired_after_lead_in(&p), 0, "{}", p.stderr);
+    let lead_in = [Stream::Colour, Stream::Depth].map(|s| assert_published(&p, s, &all));
+    assert_eq!(unpaired_after_lead_in(&p, lead_in), 0, "{}", p.stderr);
     assert_in_order(&p);
+    assert!(
+        !p.colour.is_empty() && !p.depth.is_empty(),
+        "this test's reader received no colour or no depth frame: nothing to check"
+    );
     for h in &p.colour {
         assert_eq!(h.stream_kind().unwrap(), StreamKind::Rgb8);
         assert_eq!((h.width, h.height), (1280, 720));
         assert!(close(h.fx, camera.colour.fx) && close(h.cy, camera.colour.cy));
     }
-    // Timestamps are on the host clock (the recorded ones moved by one offset).
-    let now = b2b_frames::now_ns();
-    let first = p.colour[0].timestamp_ns;
-    assert!(first > now - 120_000_000_000 && first <= now);
+    // Timestamps are on the host clock: the recorded ones moved by one offset,
+    // the frame that came first stamped when the camera took it, during the
+    // play; the others follow it by the recording's 100 ms steps (give or
+    // take the depth's 0.4 ms lag, when a depth frame came first).
+    let recorded_span_ns = FRAMES as u64 * 100_000_000 + 1_000_000;
+    for h in &p.colour {
+        assert!(
+            (before..=after + recorded_span_ns).contains(&h.timestamp_ns),
+            "colour frame {}: stamped {} ns, the play ran from {before} to {after} ns",
+            h.frame_number,
+            h.timestamp_ns
+        );
+    }
     for (h, d) in &p.depth {
         assert_eq!(h.stream_kind().unwrap(), StreamKind::Z16);
         assert_eq!((h.width, h.height), (1280, 720));
         assert!(close(h.fx, camera.colour.fx) && close(h.cx, camera.colour.cx));
         assert_eq!(h.depth_from_colour_translation_m, [0.0; 3]);
         assert!(close(h.depth_unit_m, 0.001));
-        let c = p
-            .colour
-            .iter()
-            .find(|c| c.frame_number == h.frame_number)
-            .unwrap();
-        let gap = h.timestamp_ns.abs_diff(c.timestamp_ns);
-        assert!((300_000..500_000).contains(&gap), "paired {gap} ns apart");
+        // Its colour frame, unless this test's reader lost that one.
+        if let Some(c) = p.colour.iter().find(|c| c.frame_number == h.frame_number) {
+            let gap = h.timestamp_ns.abs_diff(c.timestamp_ns);
+            assert!(
+                (300_000..500_000).contains(&gap),
+                "frame {}: paired {gap} ns apart",
+                h.frame_number
+            );
+        }
         assert_aligned(
             h.frame_number,
             d,
@@ -392,15 +470,12 @@ fn depth_on_its_own_clock_is_paired_by_time_or_not_at_all() {
     let bag = record(dir.path(), &camera, &truth, &timing);
     let p = play(&bag);
     assert_in_order(&p);
-    assert_eq!(
-        after_lead_in(&p.colour),
-        (2..=7).collect::<Vec<_>>(),
-        "{}",
-        p.stderr
-    );
-    let paired = after_lead_in(p.depth.iter().map(|(h, _)| h));
-    assert_eq!(paired, vec![2, 5, 6, 7], "{}", p.stderr);
-    assert_eq!(unpaired_after_lead_in(&p), 2, "{}", p.stderr);
+    let lead_in = [
+        assert_published(&p, Stream::Colour, &(2..=7).collect::<Vec<_>>()),
+        // Depth only where it was paired.
+        assert_published(&p, Stream::Depth, &[2, 5, 6, 7]),
+    ];
+    assert_eq!(unpaired_after_lead_in(&p, lead_in), 2, "{}", p.stderr);
     // Frame 3's nearest depth frame is frame 2's second one.
     assert!(
         p.stderr
@@ -415,14 +490,21 @@ fn depth_on_its_own_clock_is_paired_by_time_or_not_at_all() {
         p.stderr
     );
     // Each depth frame is its own capture's: aligned onto that capture's
-    // geometry (another capture's depth would not be), within the window.
+    // geometry (another capture's depth would not be), within the window (when
+    // this test's reader has its colour frame).
+    assert!(
+        !p.depth.is_empty(),
+        "this test's reader received no depth frame: nothing to check"
+    );
     for (h, d) in &p.depth {
-        let c = p
-            .colour
-            .iter()
-            .find(|c| c.frame_number == h.frame_number)
-            .unwrap();
-        assert!(h.timestamp_ns.abs_diff(c.timestamp_ns) < 16_700_000);
+        if let Some(c) = p.colour.iter().find(|c| c.frame_number == h.frame_number) {
+            let gap = h.timestamp_ns.abs_diff(c.timestamp_ns);
+            assert!(
+                gap < 16_700_000,
+                "frame {}: paired {gap} ns apart",
+                h.frame_number
+            );
+        }
         assert_aligned(
             h.frame_number,
             d,
@@ -533,46 +615,55 @@ fn the_rgbd_method_calibrates_from_played_back_frames() {
             &frames,
             &Timing::regular(n, 1000.0, 100.0, 0.4),
         );
-        // Every capture needs its frames. Playback on a loaded machine may drop
-        // a frame at the start beyond the lead-in (one CI run lost colour frame
-        // 2): the other tests here check what playback delivers; this one plays
-        // the recording again, at most three times, until every frame came.
-        let complete = |p: &Playback| {
-            (2..=n as u64).all(|k| {
-                p.colour.iter().any(|h| h.frame_number == k)
-                    && p.depth.iter().any(|(h, _)| h.frame_number == k)
-            })
-        };
-        let mut p = play(&bag);
-        for attempt in 2..=3 {
-            if complete(&p) {
+        // Every capture needs its frames. A play may lose one: librealsense's
+        // playback on a loaded machine may drop a frame at the start beyond
+        // the lead-in (one CI run lost colour frame 2), and this test's reader
+        // may read too slowly. The other tests here check what playback
+        // delivers; this one plays the recording again, at most five times,
+        // until every frame has come in one play or another (a frame's pixels
+        // and its aligned depth are the same in every play).
+        let mut colour: BTreeMap<u64, Vec<u8>> = BTreeMap::new();
+        let mut depth: BTreeMap<u64, (FrameHeader, Vec<u16>)> = BTreeMap::new();
+        for attempt in 1..=5 {
+            let p = play(&bag);
+            for (h, data) in p.colour.iter().zip(p.colour_data) {
+                colour.entry(h.frame_number).or_insert(data);
+            }
+            for (h, d) in p.depth {
+                depth.entry(h.frame_number).or_insert((h, d));
+            }
+            let missing: Vec<u64> = (2..=n as u64)
+                .filter(|k| !colour.contains_key(k) || !depth.contains_key(k))
+                .collect();
+            if missing.is_empty() {
                 break;
             }
             eprintln!(
-                "{}: playback lost a frame, playing again (attempt {attempt}): {}",
+                "{}: after {attempt} plays, frames {missing:?} still lack colour or depth; the camera said: {}",
                 robot.id, p.stderr
             );
-            p = play(&bag);
         }
         for (k, cap) in robot.captures.iter().enumerate() {
             // Frame 1 is the lead-in.
             let number = k as u64 + 2;
-            let i = p
-                .colour
-                .iter()
-                .position(|h| h.frame_number == number)
-                .unwrap_or_else(|| panic!("{}: colour frame {number} not played", robot.id));
+            let data = colour.get(&number).unwrap_or_else(|| {
+                panic!(
+                    "{}: colour frame {number} not received in five plays",
+                    robot.id
+                )
+            });
             let image = RgbImage {
                 width: c.width as usize,
                 height: c.height as usize,
-                data: p.colour_data[i].clone(),
+                data: data.clone(),
             };
             write_rgb(&ds.image_path(&robot.id, cap).unwrap(), &image).unwrap();
-            let (h, d) = p
-                .depth
-                .iter()
-                .find(|(h, _)| h.frame_number == number)
-                .unwrap_or_else(|| panic!("{}: depth for frame {number} not played", robot.id));
+            let (h, d) = depth.get(&number).unwrap_or_else(|| {
+                panic!(
+                    "{}: depth of frame {number} not received in five plays",
+                    robot.id
+                )
+            });
             let depth = DepthImage {
                 width: c.width as usize,
                 height: c.height as usize,

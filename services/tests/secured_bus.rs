@@ -23,6 +23,7 @@ mod common;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use b2b_protocol::messages::{AgentState, AgentStatus, COORDINATOR, Envelope};
@@ -113,34 +114,113 @@ fn put(config: &Path, key: &str, payload: &Path) -> Child {
         .unwrap()
 }
 
+/// A child's stdout and stderr, read while it runs: a test can wait for what
+/// it prints (the event a line stands for), and a full pipe never stalls it.
+struct Printout {
+    /// Stdout, then stderr.
+    streams: [Arc<Mutex<Vec<u8>>>; 2],
+    readers: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl Printout {
+    /// Takes `child`'s piped stdout and stderr and reads them from now on.
+    fn of(child: &mut Child) -> Printout {
+        let streams: [Arc<Mutex<Vec<u8>>>; 2] = Default::default();
+        let pipes = [
+            child
+                .stdout
+                .take()
+                .map(|p| Box::new(p) as Box<dyn Read + Send>),
+            child
+                .stderr
+                .take()
+                .map(|p| Box::new(p) as Box<dyn Read + Send>),
+        ];
+        let readers = pipes
+            .into_iter()
+            .zip(&streams)
+            .filter_map(|(pipe, text)| {
+                let (mut pipe, text) = (pipe?, Arc::clone(text));
+                Some(std::thread::spawn(move || {
+                    let mut buf = [0u8; 8192];
+                    loop {
+                        match pipe.read(&mut buf) {
+                            Ok(0) => break,
+                            Ok(n) => text.lock().unwrap().extend_from_slice(&buf[..n]),
+                            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                            Err(_) => break,
+                        }
+                    }
+                }))
+            })
+            .collect();
+        Printout { streams, readers }
+    }
+
+    /// What the child printed so far: its stdout, then its stderr.
+    fn text(&self) -> String {
+        self.streams
+            .iter()
+            .map(|s| String::from_utf8_lossy(&s.lock().unwrap()).into_owned())
+            .collect()
+    }
+
+    /// Waits until what the child printed satisfies `heard`, up to `limit`
+    /// (a generous bound: it only turns an event that never comes into a
+    /// failure, naming `what` was awaited).
+    fn wait_for(&self, what: &str, limit: Duration, heard: impl Fn(&str) -> bool) {
+        let start = Instant::now();
+        loop {
+            let text = self.text();
+            if heard(&text) {
+                return;
+            }
+            assert!(
+                start.elapsed() < limit,
+                "not within {limit:?}: {what}; it printed:\n{text}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Waits for `child` to exit, up to `limit`; whether it succeeded, and
+    /// everything it printed (its stdout, then its stderr).
+    fn exited(mut self, mut child: Killed, limit: Duration) -> (bool, String) {
+        let start = Instant::now();
+        let status = loop {
+            if let Some(status) = child.0.try_wait().unwrap() {
+                break status;
+            }
+            assert!(
+                start.elapsed() < limit,
+                "no exit within {limit:?}; it printed:\n{}",
+                self.text()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        // Its pipes are closed: the readers end with the last bytes.
+        for reader in std::mem::take(&mut self.readers) {
+            let _ = reader.join();
+        }
+        (status.success(), self.text())
+    }
+}
+
 /// Waits for a child to exit; whether it succeeded, and its stdout then stderr.
 fn exited(child: Child, limit: Duration) -> (bool, String) {
-    let start = Instant::now();
     let mut child = Killed(child);
-    while child.0.try_wait().unwrap().is_none() {
-        assert!(start.elapsed() < limit, "no exit within {limit:?}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let mut text = String::new();
-    for stream in [
-        child
-            .0
-            .stdout
-            .take()
-            .map(|s| Box::new(s) as Box<dyn std::io::Read>),
-        child
-            .0
-            .stderr
-            .take()
-            .map(|s| Box::new(s) as Box<dyn std::io::Read>),
-    ]
-    .into_iter()
-    .flatten()
-    {
-        let mut stream = stream;
-        let _ = stream.read_to_string(&mut text);
-    }
-    (child.0.wait().unwrap().success(), text)
+    let printout = Printout::of(&mut child.0);
+    printout.exited(child, limit)
+}
+
+/// The number of the last message an agent sent (a capture or a status, its
+/// heartbeat twice a second included): its sequence counter, which it stores
+/// in its state folder before each message goes out. 0 before the first.
+fn last_sequence(state: &Path, robot: &str) -> u64 {
+    std::fs::read_to_string(state.join(format!("agent-{robot}.seq")))
+        .ok()
+        .and_then(|t| t.trim().parse().ok())
+        .unwrap_or(0)
 }
 
 /// Waits for a child to exit successfully and returns its stdout, then its stderr.
@@ -360,7 +440,23 @@ fn the_coordinator_killed_and_restarted_mid_run_under_tls_loses_nothing() {
     drop(first);
     let kept = lines();
     assert!(kept >= 6, "{kept} samples journalled");
-    std::thread::sleep(Duration::from_millis(500));
+    // Each agent sends on with no coordinator to hear it (what the restarted
+    // one must ask their history for) before the restart.
+    let sent_at_kill: Vec<u64> = agents
+        .iter()
+        .map(|(_, robot)| last_sequence(&dir.join(format!("agent-{robot}")), robot))
+        .collect();
+    let start = Instant::now();
+    for ((_, robot), at_kill) in agents.iter().zip(sent_at_kill) {
+        let state = dir.join(format!("agent-{robot}"));
+        while last_sequence(&state, robot) <= at_kill {
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "{robot} sent nothing within 60 s of the coordinator's kill (its last message was number {at_kill})"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
     let (ok, printed) = exited(coordinator(), Duration::from_secs(180));
     assert!(ok, "the restarted coordinator failed: {printed}");
     // The restart had work left: samples arrived after it.
@@ -461,17 +557,20 @@ fn run_with_rogues(access_control: bool) -> Outcome {
         }
     };
     let coordinator_cfg = config_of(COORDINATOR);
-    let coordinator = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .args(["run", "--robots", "robot1,robot2", "--zenoh"])
-        .arg(&coordinator_cfg)
-        .arg("--state-dir")
-        .arg(dir.join("coordinator-state"))
-        .arg("--out")
-        .arg(dir.join("RESULT.json"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut coordinator = Killed(
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["run", "--robots", "robot1,robot2", "--zenoh"])
+            .arg(&coordinator_cfg)
+            .arg("--state-dir")
+            .arg(dir.join("coordinator-state"))
+            .arg("--out")
+            .arg(dir.join("RESULT.json"))
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    let printout = Printout::of(&mut coordinator.0);
     // The rogues first, so that what they say is there before the real agents.
     let _rogues: Vec<Killed> = vec![
         // Paced, so that they are still publishing once connected.
@@ -506,7 +605,23 @@ fn run_with_rogues(access_control: bool) -> Outcome {
         &pki.join("robot1.json5")
     ));
     assert_eq!(peers_of(&pki.join("robot3.json5")), 1);
-    std::thread::sleep(Duration::from_secs(2));
+    // The rogues are speaking before the real agents start: the coordinator
+    // has turned away the garbage robot1's certificate sent, and robot2's
+    // certificate on robot1's keys (refused by the access control, or, with
+    // no rule, rejected for its signature).
+    let garbage = "b2b/agent/robot1/capture: not a valid message";
+    let robot2_as_robot1 = |line: &str| {
+        if access_control {
+            line.contains("access control refused") && line.contains("b2b/agent/robot1/")
+        } else {
+            line.contains("signed with the certificate of 'robot2', but the key is robot1's")
+        }
+    };
+    printout.wait_for(
+        "the coordinator heard the rogues (robot1's garbage and robot2's certificate on robot1's keys)",
+        Duration::from_secs(60),
+        |text| text.contains(garbage) && text.lines().any(robot2_as_robot1),
+    );
     let a1 = agent(
         "robot1",
         &dataset(),
@@ -521,7 +636,7 @@ fn run_with_rogues(access_control: bool) -> Outcome {
         &dir.join("a2"),
         0,
     );
-    let (ok, printed) = exited(coordinator, Duration::from_secs(180));
+    let (ok, printed) = printout.exited(coordinator, Duration::from_secs(180));
     let live = ok.then(|| {
         serde_json::from_str(&std::fs::read_to_string(dir.join("RESULT.json")).unwrap()).unwrap()
     });
