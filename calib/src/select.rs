@@ -328,6 +328,30 @@ pub fn cross_validate(
     options: &RefineOptions,
     folds: usize,
 ) -> Option<Selection> {
+    cross_validate_with(robots, robots, options, folds)
+}
+
+/// [`cross_validate`] with the closed forms given their own cameras and
+/// poses (`closed`: the same captures of the same robots, in the same order).
+/// Where the intrinsics are estimated, the refinement refines them while a
+/// closed form takes the PnP poses as they are: from the first estimate they
+/// would handicap the closed forms against the refinement, so the caller gives
+/// them the jointly refined cameras and the poses fitted with those
+/// ([`estimate_bases_selected_with`]). Captures that differ are an error of
+/// the caller's: `None`.
+pub fn cross_validate_with(
+    robots: &[&RobotCaptures<'_>],
+    closed: &[&RobotCaptures<'_>],
+    options: &RefineOptions,
+    folds: usize,
+) -> Option<Selection> {
+    if closed.len() != robots.len()
+        || closed.iter().zip(robots).any(|(c, r)| {
+            c.captures.len() != r.captures.len() || c.camera_from_target.len() != r.captures.len()
+        })
+    {
+        return None;
+    }
     if robots.len() < 2
         || robots.iter().any(|r| {
             r.captures.len() < MIN_CAPTURES_TO_SELECT || r.captures.iter().any(|c| c.target != 0)
@@ -338,6 +362,7 @@ pub fn cross_validate(
     let smallest = robots.iter().map(|r| r.captures.len()).min()?;
     let folds = folds.min(smallest).max(2);
     let cameras: Vec<&CameraModel> = robots.iter().map(|r| r.camera).collect();
+    let closed_cameras: Vec<&CameraModel> = closed.iter().map(|r| r.camera).collect();
     // Consecutive captures per fold.
     let fold_of = |i: usize, n: usize| i * folds / n;
     let mut sums = vec![(0.0, 0usize, true); CANDIDATES.len()];
@@ -353,6 +378,7 @@ pub fn cross_validate(
                 .unzip()
         };
         let training: Vec<Owned> = robots.iter().map(|r| split(r, true)).collect();
+        let closed_training: Vec<Owned> = closed.iter().map(|r| split(r, true)).collect();
         let test: Vec<Owned> = robots.iter().map(|r| split(r, false)).collect();
         held.push(test.iter().map(|t| t.0.len()).sum());
         min_training = training
@@ -369,7 +395,7 @@ pub fn cross_validate(
                         .map(|e| Model::from_estimate(&e)),
                     Err(e) => Err(e.clone()),
                 },
-                _ => fit_closed(*candidate, &training, &cameras, options),
+                _ => fit_closed(*candidate, &closed_training, &closed_cameras, options),
             };
             let Ok(model) = model else {
                 sums[k].2 = false;
@@ -449,8 +475,18 @@ pub fn estimate_bases_selected(
     robots: &[&RobotCaptures<'_>],
     options: &RefineOptions,
 ) -> Result<SelectedRun, CalibError> {
+    estimate_bases_selected_with(robots, robots, options)
+}
+
+/// [`estimate_bases_selected`] with the closed forms on their own cameras and
+/// poses (see [`cross_validate_with`]); a closed form chosen is run on them.
+pub fn estimate_bases_selected_with(
+    robots: &[&RobotCaptures<'_>],
+    closed: &[&RobotCaptures<'_>],
+    options: &RefineOptions,
+) -> Result<SelectedRun, CalibError> {
     let selection = match options.noise {
-        NoiseModel::Estimated => cross_validate(robots, options, FOLDS),
+        NoiseModel::Estimated => cross_validate_with(robots, closed, options, FOLDS),
         _ => None,
     };
     let Some(selection) = selection else {
@@ -473,7 +509,7 @@ pub fn estimate_bases_selected(
     };
     let mut run = match selection.chosen {
         Candidate::Refined(shape) => estimate_bases(robots, &shape_options(&inner, shape))?,
-        closed => closed_form_run(robots, closed, &inner)?,
+        form => closed_form_run(closed, form, &inner)?,
     };
     let fold_scatter =
         selection.spread_scale(&run.estimate.ref_from_base, &run.estimate.covariance);

@@ -2291,15 +2291,33 @@ pub fn bases_and_cameras_from_observations(
     let ids: Vec<&str> = screened.iter().map(|o| o.robot.as_str()).collect();
     let all = ids.join("+");
     let capture_refs: Vec<&RobotCaptures<'_>> = captures.iter().collect();
-    let selected = b2b_calib::select::estimate_bases_selected(&capture_refs, options).map_err(
-        |e| match e {
-            CalibError::Disconnected { cut_off } => PipelineError::Disconnected {
-                reference: ids[0].to_owned(),
-                cut_off: cut_off.iter().map(|r| ids[*r].to_owned()).collect(),
-            },
-            e => calib(&all)(e),
-        },
-    )?;
+    // The model selection's closed forms take the PnP poses as they are; where
+    // the intrinsics were estimated from the captures, those come from the first
+    // estimate, while the refinement refines the cameras. So the closed forms get
+    // the cameras the default fit refines and the poses fitted with them.
+    let closed_inputs = closed_form_inputs(&screened, &capture_refs, options);
+    let closed_captures: Vec<RobotCaptures<'_>> = match &closed_inputs {
+        Some(inputs) => captures
+            .iter()
+            .zip(inputs)
+            .map(|(c, (camera, poses))| RobotCaptures {
+                camera,
+                captures: c.captures,
+                camera_from_target: poses,
+            })
+            .collect(),
+        None => captures.clone(),
+    };
+    let closed_refs: Vec<&RobotCaptures<'_>> = closed_captures.iter().collect();
+    let selected =
+        b2b_calib::select::estimate_bases_selected_with(&capture_refs, &closed_refs, options)
+            .map_err(|e| match e {
+                CalibError::Disconnected { cut_off } => PipelineError::Disconnected {
+                    reference: ids[0].to_owned(),
+                    cut_off: cut_off.iter().map(|r| ids[*r].to_owned()).collect(),
+                },
+                e => calib(&all)(e),
+            })?;
     let model_selection = select::model_selection(&selected);
     let run = selected.run;
     for (k, split) in run.splits.iter().enumerate() {
@@ -2463,6 +2481,53 @@ pub fn bases_and_cameras_from_observations(
         cameras,
         spread,
     })
+}
+
+/// Per robot, the camera and poses the model selection's closed forms take
+/// when some robot's intrinsics were estimated from its captures: that robot's
+/// camera as the default fit refines it, each capture's pose fitted again with
+/// it (the first pose where that fit fails); the others' as they are. `None`
+/// when no intrinsics were estimated, the noise model is given (no selection
+/// then) or the default fit fails (the selection runs as before).
+fn closed_form_inputs(
+    screened: &[RobotObservations],
+    captures: &[&RobotCaptures<'_>],
+    options: &RefineOptions,
+) -> Option<Vec<(CameraModel, Vec<Iso3>)>> {
+    if !screened.iter().any(|o| o.estimated_intrinsics.is_some())
+        || options.noise != b2b_calib::refine::NoiseModel::Estimated
+    {
+        return None;
+    }
+    let first = b2b_calib::estimate::estimate_bases(captures, options).ok()?;
+    Some(
+        screened
+            .iter()
+            .zip(captures)
+            .zip(first.estimate.cameras)
+            .map(|((o, c), refined)| {
+                if o.estimated_intrinsics.is_none() {
+                    return (c.camera.clone(), c.camera_from_target.to_vec());
+                }
+                let poses = o
+                    .observations
+                    .iter()
+                    .zip(c.camera_from_target)
+                    .map(|(x, first_pose)| {
+                        let det = published_detection(x);
+                        let pose = if det.target_points.iter().all(|p| p.z == 0.0) {
+                            b2b_vision::board_pose(&det, &refined)
+                        } else {
+                            b2b_vision::multimarker_pose(&det.target_points, &det.pixels, &refined)
+                                .map(|(pose, _)| pose)
+                        };
+                        pose.map_or(*first_pose, |p| p.camera_from_target)
+                    })
+                    .collect();
+                (refined, poses)
+            })
+            .collect(),
+    )
 }
 
 /// Each target's centre in the reference base: the main target's is

@@ -219,10 +219,11 @@ fn tabb_denso_split() {
         0.89,
     );
     // The held-out captures keep the default: the refined shapes predict them
-    // at 2.04-2.08 px RMS, the closed forms at 8.0 px and worse.
+    // at 2.04-2.08 px RMS, the closed forms (on the jointly refined cameras)
+    // at 2.5 px and worse.
     assert_eq!(f.chosen, "refined");
     within("held-out, refined", f.held_out_chosen_px, 2.04);
-    within("held-out, park", f.held_out_park_px, 8.62);
+    within("held-out, park", f.held_out_park_px, 3.33);
 }
 
 /// The Denso recording's first 44 captures against its last 44: the halves
@@ -244,7 +245,13 @@ fn tabb_denso_halves() {
         2.34,
     );
     within("predicted / true p95", f.ratio(), 0.72);
+    // The held-out captures choose the refinement even so (1.66 px against
+    // Park's 2.47 on the refined cameras): they test each robot's own fit, and
+    // nothing in them checks the bases against each other.
     assert_eq!(f.chosen, "refined");
+    within("held-out, refined", f.held_out_chosen_px, 1.66);
+    within("held-out, park", f.held_out_park_px, 2.47);
+    within("park, refined cameras", f.park_refined_camera_mm, 6.15);
 }
 
 /// ViSP's first four captures against its last four.
