@@ -1408,6 +1408,20 @@ pub(crate) fn published_detection(o: &Observation) -> BoardDetection {
     }
 }
 
+/// An observation's pose fitted to its corners with `camera`: a planar target
+/// by IPPE + LM, another by the multimarker pose.
+fn pose_with(
+    o: &Observation,
+    camera: &CameraModel,
+) -> Result<b2b_vision::PoseEstimate, VisionError> {
+    let det = published_detection(o);
+    if det.target_points.iter().all(|p| p.z == 0.0) {
+        b2b_vision::board_pose(&det, camera)
+    } else {
+        b2b_vision::multimarker_pose(&det.target_points, &det.pixels, camera).map(|(pose, _)| pose)
+    }
+}
+
 /// The observations with `camera`: every pose fitted again to its corners with
 /// it (a planar target by IPPE + LM, another by the multimarker pose). An
 /// observation whose pose then fails is rejected with the reason, naming the
@@ -1417,14 +1431,7 @@ pub fn refit_poses(obs: RobotObservations, camera: CameraModel, which: &str) -> 
     let mut observations = Vec::with_capacity(obs.observations.len());
     let mut rejected = obs.rejected;
     for o in obs.observations {
-        let det = published_detection(&o);
-        let pose = if det.target_points.iter().all(|p| p.z == 0.0) {
-            b2b_vision::board_pose(&det, &camera)
-        } else {
-            b2b_vision::multimarker_pose(&det.target_points, &det.pixels, &camera)
-                .map(|(pose, _)| pose)
-        };
-        match pose {
+        match pose_with(&o, &camera) {
             Ok(pose) => observations.push(Observation {
                 camera_from_target: pose.camera_from_target,
                 pnp_rms_px: pose.rms_px,
@@ -2514,14 +2521,7 @@ fn closed_form_inputs(
                     .iter()
                     .zip(c.camera_from_target)
                     .map(|(x, first_pose)| {
-                        let det = published_detection(x);
-                        let pose = if det.target_points.iter().all(|p| p.z == 0.0) {
-                            b2b_vision::board_pose(&det, &refined)
-                        } else {
-                            b2b_vision::multimarker_pose(&det.target_points, &det.pixels, &refined)
-                                .map(|(pose, _)| pose)
-                        };
-                        pose.map_or(*first_pose, |p| p.camera_from_target)
+                        pose_with(x, &refined).map_or(*first_pose, |p| p.camera_from_target)
                     })
                     .collect();
                 (refined, poses)
