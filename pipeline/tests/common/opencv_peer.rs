@@ -22,7 +22,7 @@ use std::sync::{LazyLock, Mutex};
 
 use b2b_calib::Iso3;
 use b2b_calib::camera::CameraModel;
-use b2b_pipeline::{CalibrationRun, TargetSpec};
+use b2b_pipeline::{CalibrationRun, RobotSetup, TargetSpec};
 use b2b_vision::BoardDetection;
 use b2b_vision::checkerboard::{CornerMethod, find_corners, orient_corners};
 use b2b_vision::intrinsics::{DistortionTerms, IntrinsicsOptions, calibrate_from_detections};
@@ -241,18 +241,12 @@ pub fn opencv_pairs(
     out
 }
 
-/// The dataset's camera for `robot`, `None` when it gives none.
+/// The dataset's camera for `robot`, `None` when it gives none (the
+/// pipeline's own reading of `dataset.json`).
 fn given_camera(s: &Split, robot: &str) -> Option<CameraModel> {
-    let c = s.dataset.robot_manifest(robot)?.camera.as_ref()?;
-    Some(
-        CameraModel::new(
-            c.width,
-            c.height,
-            [c.fx, c.fy, c.cx, c.cy],
-            c.modelled_dist(),
-        )
-        .unwrap(),
-    )
+    RobotSetup::from_dataset(&s.dataset, robot)
+        .ok()
+        .map(|setup| setup.camera)
 }
 
 /// OpenCV's row-major corners as they are or turned by 180° (the list
