@@ -37,6 +37,21 @@
 //! (`calib/tests/spread_scale.rs` asserts both). The scale is applied only where
 //! every fold's fit kept [`MIN_TRAINING_FOR_SCALE`] captures per robot; below,
 //! the model's covariance stands and the scatter is reported, not applied.
+//!
+//! The folds cannot see an error common to all of a robot's captures, and the
+//! candidates the held-out evidence cannot tell apart (within [`MARGIN`] of the
+//! chosen one's figure) can still put the bases far apart: on a real Denso arm
+//! split into its first and last 44 captures, the refinement's four noise
+//! shapes predict the held-out corners within 1% of each other (1.646 to
+//! 1.661 px) while their bases lie 6.0 to 14.6 mm from the truth. Which of them
+//! is right the data do not say, so the bound must hold all of them
+//! ([`Selection::model_spread`]): the chosen estimate's covariance gains their
+//! spread about it, `Σ δ_i δ_iᵀ / (|S| + 1)` over the agreeing candidates `S`
+//! (the chosen one counted with `δ = 0`), each `δ_i` the mean over the folds of
+//! its fit less the chosen one's. Where the models agree (a rendered world the
+//! noise model knows) the spread is a fraction of the covariance; on that
+//! Denso split it takes the bound from 0.72x the true p95 to 0.98x
+//! (`pipeline/tests/real_splits.rs`). It is added where the scale is applied.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -320,6 +335,51 @@ impl Selection {
     }
 }
 
+impl Selection {
+    /// The candidates whose held-out figure lies within [`MARGIN`] of the
+    /// chosen one's (the chosen one excluded), and the covariance their spread
+    /// about the chosen estimate adds to its own (see the module's
+    /// documentation): `Σ δ_i δ_iᵀ / (|S| + 1)`, `δ_i` the mean over the folds
+    /// of the candidate's bases less the chosen one's (stacked left
+    /// differences, robots 1..N). `None` when the chosen candidate's fold fits
+    /// are missing; a candidate whose fit failed on a fold is left out.
+    pub fn model_spread(&self) -> Option<(Vec<Candidate>, DMatrix<f64>)> {
+        let kc = CANDIDATES.iter().position(|c| *c == self.chosen)?;
+        let chosen = self.held_out(self.chosen)?;
+        let chosen_folds = self.fold_bases[kc]
+            .iter()
+            .map(Option::as_ref)
+            .collect::<Option<Vec<_>>>()?;
+        let dim = 6 * chosen_folds.first()?.len();
+        let mut sum = DMatrix::zeros(dim, dim);
+        let mut members = Vec::new();
+        for (k, (candidate, figure)) in self.held_out_px.iter().enumerate() {
+            if k == kc || figure.is_none_or(|v| v > chosen * (1.0 + MARGIN)) {
+                continue;
+            }
+            let Some(folds) = self.fold_bases[k]
+                .iter()
+                .map(Option::as_ref)
+                .collect::<Option<Vec<_>>>()
+            else {
+                continue;
+            };
+            let mut mean = DVector::zeros(dim);
+            for (bases, chosen_bases) in folds.iter().zip(&chosen_folds) {
+                for (r, (b, c)) in bases.iter().zip(chosen_bases.iter()).enumerate() {
+                    let mut rows = mean.rows_mut(6 * r, 6);
+                    rows += crate::pose::left_difference(b, c);
+                }
+            }
+            mean /= folds.len() as f64;
+            sum += &mean * mean.transpose();
+            members.push(*candidate);
+        }
+        let n = (members.len() + 1) as f64;
+        Some((members, sum / n))
+    }
+}
+
 /// Cross-validates [`CANDIDATES`] on the robots' captures; `None` when the
 /// problem has several targets or a robot fewer than
 /// [`MIN_CAPTURES_TO_SELECT`] captures.
@@ -465,6 +525,11 @@ pub struct SelectedRun {
     /// ([`Selection::spread_scale`]), applied or not: not where a fold's fit
     /// kept fewer than [`MIN_TRAINING_FOR_SCALE`] captures of a robot.
     pub fold_scatter: Option<f64>,
+    /// The candidates the held-out evidence could not tell from the chosen
+    /// one, whose spread about it was added to the covariance
+    /// ([`Selection::model_spread`]); empty where none agreed or the spread
+    /// was not applied (as the scale).
+    pub agreeing: Vec<Candidate>,
 }
 
 /// The default estimator with the choice made by cross-validation: the
@@ -495,6 +560,7 @@ pub fn estimate_bases_selected_with(
             selection: None,
             spread_scale: None,
             fold_scatter: None,
+            agreeing: Vec::new(),
         });
     };
     // The configured systematic error shows in no scatter: it is added after
@@ -514,8 +580,15 @@ pub fn estimate_bases_selected_with(
     let fold_scatter =
         selection.spread_scale(&run.estimate.ref_from_base, &run.estimate.covariance);
     let spread_scale = fold_scatter.filter(|_| selection.min_training >= MIN_TRAINING_FOR_SCALE);
+    let mut agreeing = Vec::new();
     if let Some(s) = spread_scale {
         run.estimate.covariance *= s;
+        if let Some((members, spread)) = selection.model_spread()
+            && spread.shape() == run.estimate.covariance.shape()
+        {
+            run.estimate.covariance += spread;
+            agreeing = members;
+        }
     }
     let used: Vec<Vec<BoardCapture>> = robots
         .iter()
@@ -529,6 +602,7 @@ pub fn estimate_bases_selected_with(
         selection: Some(selection),
         spread_scale,
         fold_scatter,
+        agreeing,
     })
 }
 

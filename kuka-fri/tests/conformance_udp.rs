@@ -13,7 +13,6 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use b2b_robot::Joints;
 use common::sdk::{Seen, SineOverlayClient};
 use kuka_fri::messages::MAX_DATAGRAM_SIZE;
 use kuka_fri::{
@@ -145,33 +144,38 @@ fn lbr_joint_sine_overlay_over_udp_connected_to_the_controller_port() {
         "{ctx}"
     );
     assert_eq!(snap.foreign, 0, "{ctx}");
-    let held: Joints = client
-        .seen
-        .iter()
-        .find(|m| m.state == SessionState::CommandingActive)
-        .expect("COMMANDING_ACTIVE reached")
-        .ipo;
     let amplitude = client.amplitude;
-    // The measured joint 4 stays within the amplitude of the held pose; the others and
-    // the application's interpolated position do not move.
-    let joint4 = max_dev(&client.seen, |m| (m.measured[3] - held[3]).abs());
+    // Each run of COMMANDING_ACTIVE holds the application's interpolated position. A busy
+    // machine can miss enough replies to drop the quality below GOOD, which aborts the
+    // overlay (the sim's documented semantics, never a violation: asserted above); the arm
+    // stays where the overlay left it and the next run holds that. So each message is
+    // measured against its own interpolated position. The measured joint 4 stays within
+    // the amplitude of it; the other joints do not move.
+    let joint4 = max_dev(&client.seen, |m| (m.measured[3] - m.ipo[3]).abs());
     let others = max_dev(&client.seen, |m| {
         (0..7)
             .filter(|&j| j != 3)
-            .map(|j| (m.measured[j] - held[j]).abs())
+            .map(|j| (m.measured[j] - m.ipo[j]).abs())
             .fold(0.0, f64::max)
     });
-    let ipo = max_dev(&client.seen, |m| {
-        (0..7)
-            .map(|j| (m.ipo[j] - held[j]).abs())
-            .fold(0.0, f64::max)
-    });
-    // With every reply on time the arm follows the sine exactly. A missed reply is bridged
-    // by extrapolating the last command for up to three cycles, then held (the sim's
-    // documented semantics): near the crest that can overshoot by the extrapolation,
-    // A·(√(1 + (3·ω·dt)²) − 1), plus the arm stopping from at most the sine's speed A·ω
-    // at its acceleration limit. A busy machine decides whether replies are missed, not
-    // whether the bound holds.
+    // The interpolated position does not move with the overlay within a run.
+    let ipo = client
+        .seen
+        .windows(2)
+        .filter(|w| w.iter().all(|m| m.state == SessionState::CommandingActive))
+        .map(|w| {
+            (0..7)
+                .map(|j| (w[1].ipo[j] - w[0].ipo[j]).abs())
+                .fold(0.0, f64::max)
+        })
+        .fold(0.0, f64::max);
+    assert!(
+        client
+            .seen
+            .iter()
+            .any(|m| m.state == SessionState::CommandingActive),
+        "COMMANDING_ACTIVE never reached: {ctx}"
+    );
     let omega = std::f64::consts::TAU * client.frequency;
     let dt = f64::from(SimConfig::default().send_period_ms) * 1e-3;
     let bridged = if s.missed_replies == 0 {
@@ -208,9 +212,11 @@ fn lbr_joint_sine_overlay_over_udp_connected_to_the_controller_port() {
 fn a_client_answering_from_another_port_is_never_heard() {
     let (server, socket) = controller_and_client(true);
     let client = ClientThread::start(socket, server.local_addr(), true);
-    // Two quality windows of messages.
-    wait_for("100 messages", Duration::from_secs(30), || {
-        server.snapshot().stats.sent >= 100
+    // Two quality windows of messages, and the client's answers to half of them (a
+    // client thread the machine holds back answers late, not never).
+    wait_for("100 messages, 50 answers", Duration::from_secs(30), || {
+        let snap = server.snapshot();
+        snap.stats.sent >= 100 && snap.foreign >= 50
     });
     let snap = server.snapshot();
     assert_eq!(snap.state, SessionState::MonitoringWait, "{snap:?}");

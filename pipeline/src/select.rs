@@ -17,6 +17,12 @@ pub(crate) fn model_selection(selected: &SelectedRun) -> Option<ModelSelection> 
         spread_scale = selected.spread_scale,
         fold_scatter = selected.fold_scatter,
         min_training = s.min_training,
+        agreeing = selected
+            .agreeing
+            .iter()
+            .map(|c| c.name())
+            .collect::<Vec<_>>()
+            .join(", "),
         "estimator chosen by {}-fold cross-validation: {}",
         s.folds,
         s.held_out_px
@@ -34,5 +40,6 @@ pub(crate) fn model_selection(selected: &SelectedRun) -> Option<ModelSelection> 
         folds: s.folds,
         spread_scale: selected.spread_scale,
         fold_scatter: selected.fold_scatter,
+        agreeing: selected.agreeing.iter().map(|c| c.name()).collect(),
     })
 }

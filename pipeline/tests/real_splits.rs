@@ -210,7 +210,7 @@ fn tabb_denso_split() {
     // docs/accuracy.md
     within("ours", f.ours_mm, 4.61);
     within("park, refined cameras", f.park_refined_camera_mm, 6.91);
-    within("predicted / true p95", f.ratio(), 1.26);
+    within("predicted / true p95", f.ratio(), 1.31);
     within("OpenCV's park", f.opencv_park_mm, 19.3);
     within("OpenCV's best pair", f.opencv_best_mm, 5.17);
     within(
@@ -231,10 +231,10 @@ fn tabb_denso_split() {
 #[test]
 fn tabb_denso_halves() {
     let s = split_by("tabb-denso-ds1", &chosen_base1_from_base2(), Deal::Halves);
-    let (f, _) = measure("tabb-denso-ds1 halves", &s);
+    let (f, run) = measure("tabb-denso-ds1 halves", &s);
     // docs/accuracy.md: ahead of what a user of OpenCV picks, behind its best
-    // pair chosen by the truth, and a bound below the truth (the halves' own
-    // systematic errors differ, and nothing in one half's captures shows the
+    // pair chosen by the truth, and a bound just below the truth (the halves'
+    // own systematic errors differ, and nothing in one half's captures shows the
     // part common to all of them).
     within("ours", f.ours_mm, 14.6);
     within("OpenCV's park", f.opencv_park_mm, 43.8);
@@ -244,7 +244,7 @@ fn tabb_denso_halves() {
         f.ours_mm / f.opencv_best_mm,
         2.34,
     );
-    within("predicted / true p95", f.ratio(), 0.72);
+    within("predicted / true p95", f.ratio(), 0.98);
     // The held-out captures choose the refinement even so (1.66 px against
     // Park's 2.47 on the refined cameras): they test each robot's own fit, and
     // nothing in them checks the bases against each other.
@@ -252,6 +252,14 @@ fn tabb_denso_halves() {
     within("held-out, refined", f.held_out_chosen_px, 1.66);
     within("held-out, park", f.held_out_park_px, 2.47);
     within("park, refined cameras", f.park_refined_camera_mm, 6.15);
+    // The refined shapes predict the held-out corners within 1% of each other
+    // while the flange shape's bases lie 6.0 mm from the truth against the
+    // default's 14.6: the bound holds their spread (0.72x without it).
+    let selection = run.result.model_selection.as_ref().unwrap();
+    assert!(
+        selection.agreeing.iter().any(|c| c == "refined/flange"),
+        "{selection:?}"
+    );
 }
 
 /// ViSP's first four captures against its last four.
@@ -317,9 +325,9 @@ fn rendered_sets_bound_ratio() {
     use b2b_dataset::{Dataset, load_ground_truth};
     // docs/accuracy.md: (set, method, predicted / true p95)
     for (name, method, expected) in [
-        ("sim-checkerboard-2x12", B2bMethod::Board, 1.98),
-        ("sim-multimarker-4x3-2x10", B2bMethod::Multimarker, 0.85),
-        ("sim-multimarker-corner-2x10", B2bMethod::Multimarker, 1.29),
+        ("sim-checkerboard-2x12", B2bMethod::Board, 1.99),
+        ("sim-multimarker-4x3-2x10", B2bMethod::Multimarker, 0.90),
+        ("sim-multimarker-corner-2x10", B2bMethod::Multimarker, 1.35),
     ] {
         let dir = common::bundled(name);
         let ds = Dataset::load(&dir).unwrap();

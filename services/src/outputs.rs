@@ -444,6 +444,13 @@ fn print_model_selection(m: &b2b_protocol::ModelSelection) {
             (None, None) => String::new(),
         }
     );
+    if !m.agreeing.is_empty() {
+        println!(
+            "  the held-out captures cannot tell {} from {}: their spread is part of the bound",
+            m.agreeing.join(", "),
+            m.chosen
+        );
+    }
 }
 
 fn print_predicted(p: &b2b_protocol::PredictedError) {

