@@ -43,7 +43,7 @@
 //! chosen one's figure) can still put the bases far apart: on a real Denso arm
 //! split into its first and last 44 captures, the refinement's four noise
 //! shapes predict the held-out corners within 1% of each other (1.646 to
-//! 1.661 px) while their bases lie 6.0 to 14.6 mm from the truth. Which of them
+//! 1.661 px) while their bases differ by millimetres. Which of them
 //! is right the data do not say, so the bound must hold all of them
 //! ([`Selection::model_spread`]): the chosen estimate's covariance gains their
 //! spread about it, `Σ δ_i δ_iᵀ / (|S| + 1)` over the agreeing candidates `S`
