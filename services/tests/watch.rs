@@ -337,7 +337,7 @@ fn bumped(set: &Path, observe: &str, bump: &[&str]) -> DriftAlarm {
     // The delay is printed, not bounded: five processes rendering and matching on
     // two shared cores stretch any wall-clock figure. How many observations the
     // alarm takes is asserted in process, on the watch's own clock
-    // (`cargo test -p b2b-services --lib watch::`: within three observations).
+    // (`cargo test -p b2b-watch`: within three observations).
     let _ = delay;
     // The same alarm on the bus, with the size of the move.
     let msg = alarms
