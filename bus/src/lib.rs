@@ -20,9 +20,9 @@
 //! sender their key names ([`crate::signing`]); [`Received::signer`] says who.
 //! On an open bus, the coordinator's journal is the defence: a capture that
 //! contradicts one held is a conflict and used by neither version
-//! ([`crate::store::Arrival`]), and a status neither stalls nor completes a run
+//! (`b2b_services::store::Arrival`), and a status neither stalls nor completes a run
 //! beyond the captures that arrived and the agent's history holds. On either,
-//! a message of another run's session is dropped ([`crate::coordinator`]).
+//! a message of another run's session is dropped (`b2b_services::coordinator`).
 //!
 //! A port another process listens on is named as such ([`BusError::PortInUse`])
 //! before zenoh tries it; a side that hears nobody can ask
@@ -32,6 +32,12 @@
 //! does not serialise instead of sending an empty payload; [`decode`] checks
 //! every message before anyone trusts it and names the key and the problem when
 //! it does not.
+
+pub mod pki;
+pub mod signing;
+
+mod log;
+pub use log::{ACCESS_CONTROL_TARGET, AccessRefusals, LogLimiter, warn_limited};
 
 use std::path::Path;
 use std::sync::mpsc;

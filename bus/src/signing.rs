@@ -21,7 +21,7 @@
 //!   writes it; read when the session opens).
 //!
 //! Anything else is dropped and logged with the reason. The accepted message's
-//! [`crate::bus::Received::signer`] is that common name, and the coordinator's
+//! [`crate::Received::signer`] is that common name, and the coordinator's
 //! journal records it with each sample.
 //!
 //! The attachment: one version byte (1), the certificate's DER length as two
@@ -37,7 +37,7 @@ use rcgen::{KeyPair, SigningKey};
 use rustls_pki_types::pem::PemObject;
 use rustls_pki_types::{CertificateDer, TrustAnchor, UnixTime};
 
-use crate::bus::sender_of;
+use crate::sender_of;
 
 /// The revocation list beside the authority's certificate: one SHA-256
 /// fingerprint (hex) of a certificate's DER per line, `#` starting a comment.

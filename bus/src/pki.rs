@@ -33,13 +33,15 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use b2b_protocol::ProtocolError;
 use b2b_protocol::messages::{COORDINATOR, KEY_ROOT, validate_cart_id};
 use rcgen::{
     BasicConstraints, CertificateParams, DistinguishedName, DnType, ExtendedKeyUsagePurpose, IsCa,
     Issuer, KeyPair, KeyUsagePurpose, SanType,
 };
 use serde_json::{Value, json};
+
+use crate::signing::SigningError;
 
 /// The authority's certificate, which every process trusts.
 pub const CA_CERT: &str = "ca.pem";
@@ -49,6 +51,104 @@ pub const CA_KEY: &str = "ca.key";
 pub const CA_NAME: &str = "b2b calibration platform authority";
 /// The coordinator's TLS endpoint when `--listen` is not given.
 pub const DEFAULT_TLS_ENDPOINT: &str = "tls/127.0.0.1:7447";
+
+/// What went wrong issuing or revoking: the flag, file or holder, and the
+/// cause as the source.
+#[derive(Debug, thiserror::Error)]
+pub enum PkiError {
+    #[error("{flag} {endpoint}: the secured bus takes a TLS endpoint, tls/HOST:PORT")]
+    NotTls {
+        flag: &'static str,
+        endpoint: String,
+    },
+    #[error("--connect {endpoint}: expected tls/HOST:PORT")]
+    NoHost { endpoint: String },
+    #[error("--connect {endpoint}: carts cannot connect to {host}; give the coordinator's address")]
+    Unreachable { endpoint: String, host: String },
+    #[error("--robots: name at least one robot")]
+    NoRobots,
+    #[error("{flag} '{id}'")]
+    RobotId {
+        flag: &'static str,
+        id: String,
+        #[source]
+        source: ProtocolError,
+    },
+    #[error("--robots: robot id '{id}' is given twice")]
+    GivenTwice { id: String },
+    #[error(
+        "{} already holds an authority ({CA_KEY}); its certificates may be in use. \
+         Choose another folder, or remove this one to start the platform's trust over",
+        dir.display()
+    )]
+    AuthorityExists { dir: PathBuf },
+    #[error(
+        "'{robot}' already has a certificate from this authority; to replace it, \
+         `coordinator pki revoke --dir {} --robot {robot}`",
+        dir.display()
+    )]
+    AlreadyIssued { robot: String, dir: PathBuf },
+    #[error(
+        "--robot '{holder}': no certificate of that name in {} (it has {COORDINATOR}, {})",
+        dir.display(),
+        robots.join(", ")
+    )]
+    NoSuchHolder {
+        holder: String,
+        dir: PathBuf,
+        robots: Vec<String>,
+    },
+    #[error("cannot {what} {}", path.display())]
+    Io {
+        what: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: not a private key", path.display())]
+    NotAKey {
+        path: PathBuf,
+        #[source]
+        source: rcgen::Error,
+    },
+    #[error("{}: not a configuration `pki init` wrote", path.display())]
+    NotAConfiguration {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("{}: no {what}", path.display())]
+    ConfigurationLacks { path: PathBuf, what: &'static str },
+    #[error("{what}")]
+    Certificate {
+        what: String,
+        #[source]
+        source: rcgen::Error,
+    },
+    #[error("the certificate to revoke")]
+    Revoking {
+        #[source]
+        source: SigningError,
+    },
+}
+
+fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> PkiError + '_ {
+    move |source| PkiError::Io {
+        what,
+        path: path.to_owned(),
+        source,
+    }
+}
+
+fn certificate(what: impl Into<String>) -> impl FnOnce(rcgen::Error) -> PkiError {
+    let what = what.into();
+    move |source| PkiError::Certificate { what, source }
+}
+
+/// A configuration as pretty JSON (of values built here: it cannot fail).
+fn pretty(config: &Value) -> String {
+    serde_json::to_string_pretty(config).unwrap_or_else(|_| config.to_string())
+}
 
 /// What `pki init` wrote.
 #[derive(Debug, Clone)]
@@ -73,26 +173,32 @@ pub struct Endpoints {
 
 impl Endpoints {
     /// Listens and connects on `endpoint` (a `tls/` locator).
-    pub fn at(endpoint: &str) -> anyhow::Result<Endpoints> {
+    pub fn at(endpoint: &str) -> Result<Endpoints, PkiError> {
         Endpoints::new(endpoint, endpoint)
     }
 
-    pub fn new(listen: &str, connect: &str) -> anyhow::Result<Endpoints> {
-        for (what, e) in [("--listen", listen), ("--connect", connect)] {
-            anyhow::ensure!(
-                e.starts_with("tls/") && e.len() > 4,
-                "{what} {e}: the secured bus takes a TLS endpoint, tls/HOST:PORT"
-            );
+    pub fn new(listen: &str, connect: &str) -> Result<Endpoints, PkiError> {
+        for (flag, e) in [("--listen", listen), ("--connect", connect)] {
+            if !(e.starts_with("tls/") && e.len() > 4) {
+                return Err(PkiError::NotTls {
+                    flag,
+                    endpoint: e.to_owned(),
+                });
+            }
         }
         let host = connect["tls/".len()..]
             .rsplit_once(':')
             .map(|(host, _)| host.trim_start_matches('[').trim_end_matches(']'))
             .filter(|h| !h.is_empty())
-            .with_context(|| format!("--connect {connect}: expected tls/HOST:PORT"))?;
-        anyhow::ensure!(
-            host != "0.0.0.0" && host != "::",
-            "--connect {connect}: carts cannot connect to {host}; give the coordinator's address"
-        );
+            .ok_or_else(|| PkiError::NoHost {
+                endpoint: connect.to_owned(),
+            })?;
+        if host == "0.0.0.0" || host == "::" {
+            return Err(PkiError::Unreachable {
+                endpoint: connect.to_owned(),
+                host: host.to_owned(),
+            });
+        }
         Ok(Endpoints {
             listen: listen.to_owned(),
             connect: connect.to_owned(),
@@ -104,27 +210,31 @@ impl Endpoints {
 /// Creates the authority and every holder's key, certificate and zenoh
 /// configuration in `dir` (created if needed). Refuses a folder that already
 /// holds an authority: its certificates are in use.
-pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> anyhow::Result<Issued> {
-    anyhow::ensure!(!robots.is_empty(), "--robots: name at least one robot");
+pub fn init(dir: &Path, robots: &[String], endpoints: &Endpoints) -> Result<Issued, PkiError> {
+    if robots.is_empty() {
+        return Err(PkiError::NoRobots);
+    }
     for (i, r) in robots.iter().enumerate() {
-        validate_cart_id(r).with_context(|| format!("--robots: robot id '{r}'"))?;
-        anyhow::ensure!(
-            !robots[..i].contains(r),
-            "--robots: robot id '{r}' is given twice"
-        );
+        validate_cart_id(r).map_err(|source| PkiError::RobotId {
+            flag: "--robots: robot id",
+            id: r.clone(),
+            source,
+        })?;
+        if robots[..i].contains(r) {
+            return Err(PkiError::GivenTwice { id: r.clone() });
+        }
     }
     create_folder(dir)?;
     let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.to_owned());
-    anyhow::ensure!(
-        !dir.join(CA_KEY).exists(),
-        "{} already holds an authority ({CA_KEY}); its certificates may be in use. \
-         Choose another folder, or remove this one to start the platform's trust over",
-        dir.display()
-    );
+    if dir.join(CA_KEY).exists() {
+        return Err(PkiError::AuthorityExists { dir });
+    }
     let mut files = Vec::new();
 
-    let ca_key = KeyPair::generate().context("generating the authority's key")?;
-    let ca_cert = ca_params()?.self_signed(&ca_key)?;
+    let ca_key = KeyPair::generate().map_err(certificate("generating the authority's key"))?;
+    let ca_cert = ca_params()?
+        .self_signed(&ca_key)
+        .map_err(certificate("signing the authority's certificate"))?;
     files.push(write_public(&dir.join(CA_CERT), &ca_cert.pem())?);
     files.push(write_secret(&dir.join(CA_KEY), &ca_key.serialize_pem())?);
     let issuer = Issuer::new(ca_params()?, ca_key);
@@ -146,18 +256,25 @@ struct Authority {
     endpoints: Endpoints,
 }
 
-fn open_authority(dir: &Path) -> anyhow::Result<Authority> {
+fn open_authority(dir: &Path) -> Result<Authority, PkiError> {
     let dir = std::path::absolute(dir).unwrap_or_else(|_| dir.to_owned());
     let key_file = dir.join(CA_KEY);
-    let ca_key = std::fs::read_to_string(&key_file)
-        .with_context(|| format!("cannot read the authority's key {}", key_file.display()))?;
-    let ca_key = KeyPair::from_pem(&ca_key)
-        .with_context(|| format!("{}: not a private key", key_file.display()))?;
-    let read_config = |file: &Path| -> anyhow::Result<Value> {
-        let text = std::fs::read_to_string(file)
-            .with_context(|| format!("cannot read {}", file.display()))?;
-        serde_json::from_str(&text)
-            .with_context(|| format!("{}: not a configuration `pki init` wrote", file.display()))
+    let ca_key =
+        std::fs::read_to_string(&key_file).map_err(io("read the authority's key", &key_file))?;
+    let ca_key = KeyPair::from_pem(&ca_key).map_err(|source| PkiError::NotAKey {
+        path: key_file.clone(),
+        source,
+    })?;
+    let read_config = |file: &Path| -> Result<Value, PkiError> {
+        let text = std::fs::read_to_string(file).map_err(io("read", file))?;
+        serde_json::from_str(&text).map_err(|source| PkiError::NotAConfiguration {
+            path: file.to_owned(),
+            source,
+        })
+    };
+    let lacks = |path: &Path, what: &'static str| PkiError::ConfigurationLacks {
+        path: path.to_owned(),
+        what,
     };
     let coordinator_file = dir.join(format!("{COORDINATOR}.json5"));
     let config = read_config(&coordinator_file)?;
@@ -169,15 +286,15 @@ fn open_authority(dir: &Path) -> anyhow::Result<Authority> {
         .collect();
     let listen = config["listen"]["endpoints"][0]
         .as_str()
-        .with_context(|| format!("{}: no listen endpoint", coordinator_file.display()))?;
+        .ok_or_else(|| lacks(&coordinator_file, "listen endpoint"))?;
     let first = robots
         .first()
-        .with_context(|| format!("{}: no robots", coordinator_file.display()))?;
+        .ok_or_else(|| lacks(&coordinator_file, "robots"))?;
     let cart_file = dir.join(format!("{first}.json5"));
     let cart = read_config(&cart_file)?;
     let connect = cart["connect"]["endpoints"][0]
         .as_str()
-        .with_context(|| format!("{}: no connect endpoint", cart_file.display()))?;
+        .ok_or_else(|| lacks(&cart_file, "connect endpoint"))?;
     let endpoints = Endpoints::new(listen, connect)?;
     Ok(Authority {
         dir,
@@ -192,20 +309,24 @@ fn open_authority(dir: &Path) -> anyhow::Result<Authority> {
 /// speak (the coordinator restarts to read it). The endpoints are the ones
 /// `init` wrote. A cart already there is refused (`revoke` replaces its
 /// certificate).
-pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
-    validate_cart_id(robot).with_context(|| format!("--robot '{robot}'"))?;
+pub fn add(dir: &Path, robot: &str) -> Result<Issued, PkiError> {
+    validate_cart_id(robot).map_err(|source| PkiError::RobotId {
+        flag: "--robot",
+        id: robot.to_owned(),
+        source,
+    })?;
     let Authority {
         dir,
         ca_key,
         mut robots,
         endpoints,
     } = open_authority(dir)?;
-    anyhow::ensure!(
-        !robots.iter().any(|r| r == robot),
-        "'{robot}' already has a certificate from this authority; to replace it, \
-         `coordinator pki revoke --dir {} --robot {robot}`",
-        dir.display()
-    );
+    if robots.iter().any(|r| r == robot) {
+        return Err(PkiError::AlreadyIssued {
+            robot: robot.to_owned(),
+            dir,
+        });
+    }
     robots.push(robot.to_owned());
     let issuer = Issuer::new(ca_params()?, ca_key);
     let mut files = Vec::new();
@@ -213,7 +334,7 @@ pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
         &dir, &issuer, robot, &robots, &endpoints, &mut files,
     )?];
     let coordinator_file = dir.join(format!("{COORDINATOR}.json5"));
-    let text = serde_json::to_string_pretty(&coordinator_config(&dir, &robots, &endpoints))?;
+    let text = pretty(&coordinator_config(&dir, &robots, &endpoints));
     files.push(write_public(&coordinator_file, &(text + "\n"))?);
     Ok(Issued { files, configs })
 }
@@ -226,46 +347,49 @@ pub fn add(dir: &Path, robot: &str) -> anyhow::Result<Issued> {
 /// the old key can still connect, but it can say nothing anyone believes).
 /// Copy the list to every host beside its `ca.pem`, and the new files to the
 /// holder; restart them to read it.
-pub fn revoke(dir: &Path, holder: &str) -> anyhow::Result<Issued> {
+pub fn revoke(dir: &Path, holder: &str) -> Result<Issued, PkiError> {
     let Authority {
         dir,
         ca_key,
         robots,
         endpoints,
     } = open_authority(dir)?;
-    anyhow::ensure!(
-        holder == COORDINATOR || robots.iter().any(|r| r == holder),
-        "--robot '{holder}': no certificate of that name in {} (it has {COORDINATOR}, {})",
-        dir.display(),
-        robots.join(", ")
-    );
+    if holder != COORDINATOR && !robots.iter().any(|r| r == holder) {
+        return Err(PkiError::NoSuchHolder {
+            holder: holder.to_owned(),
+            dir,
+            robots,
+        });
+    }
     let cert_file = dir.join(format!("{holder}.pem"));
-    let der = crate::signing::read_certificate(&cert_file)?;
+    let der = crate::signing::read_certificate(&cert_file)
+        .map_err(|source| PkiError::Revoking { source })?;
     let fingerprint = crate::signing::fingerprint(&der);
     let list = dir.join(crate::signing::REVOKED);
     let mut out = std::fs::OpenOptions::new()
         .create(true)
         .append(true)
         .open(&list)
-        .with_context(|| format!("cannot open {}", list.display()))?;
+        .map_err(io("open", &list))?;
     set_mode(&list, PUBLIC_MODE)?;
-    let when = crate::history::now_unix_ms() / 1000;
+    let when = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
     writeln!(
         out,
         "{fingerprint}  # {holder}, revoked at unix time {when}"
     )
-    .with_context(|| format!("cannot append to {}", list.display()))?;
+    .map_err(io("append to", &list))?;
     // The old certificate is kept for the record; its key goes (keys are
     // written only where none is, so that no key is overwritten by mistake).
     let kept = dir.join(format!("{holder}.revoked-{when}.pem"));
-    std::fs::rename(&cert_file, &kept)
-        .with_context(|| format!("cannot move {} aside", cert_file.display()))?;
+    std::fs::rename(&cert_file, &kept).map_err(io("move aside", &cert_file))?;
     let old_key = dir.join(format!("{holder}.key"));
     match std::fs::remove_file(&old_key) {
         Ok(()) => {}
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
         Err(e) => {
-            return Err(e).with_context(|| format!("cannot remove {}", old_key.display()));
+            return Err(io("remove", &old_key)(e));
         }
     }
     let issuer = Issuer::new(ca_params()?, ca_key);
@@ -277,8 +401,9 @@ pub fn revoke(dir: &Path, holder: &str) -> anyhow::Result<Issued> {
 }
 
 /// The authority's own certificate parameters (the same for issuing later).
-fn ca_params() -> anyhow::Result<CertificateParams> {
-    let mut params = CertificateParams::new(Vec::<String>::new())?;
+fn ca_params() -> Result<CertificateParams, PkiError> {
+    let mut params = CertificateParams::new(Vec::<String>::new())
+        .map_err(certificate("the authority's certificate parameters"))?;
     params.distinguished_name = name(CA_NAME);
     params.is_ca = IsCa::Ca(BasicConstraints::Constrained(0));
     params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
@@ -294,17 +419,20 @@ fn issue(
     robots: &[String],
     endpoints: &Endpoints,
     files: &mut Vec<PathBuf>,
-) -> anyhow::Result<(String, PathBuf)> {
-    let key = KeyPair::generate().with_context(|| format!("generating {holder}'s key"))?;
+) -> Result<(String, PathBuf), PkiError> {
+    let key = KeyPair::generate().map_err(certificate(format!("generating {holder}'s key")))?;
     // The names a cart may reach the coordinator by: loopback, for
     // one-machine setups and tests, and the host carts connect to.
     let mut names = vec!["localhost".to_owned(), "127.0.0.1".to_owned()];
     if holder == COORDINATOR && !names.contains(&endpoints.connect_host) {
         names.push(endpoints.connect_host.clone());
     }
-    let mut params = CertificateParams::new(names)?;
+    let mut params = CertificateParams::new(names)
+        .map_err(certificate(format!("{holder}'s certificate parameters")))?;
     params.subject_alt_names.push(SanType::DnsName(
-        format!("{holder}.b2b").try_into().context("holder name")?,
+        format!("{holder}.b2b")
+            .try_into()
+            .map_err(certificate(format!("{holder}'s name")))?,
     ));
     params.distinguished_name = name(holder);
     params.key_usages = vec![
@@ -315,7 +443,9 @@ fn issue(
         ExtendedKeyUsagePurpose::ServerAuth,
         ExtendedKeyUsagePurpose::ClientAuth,
     ];
-    let cert = params.signed_by(&key, issuer)?;
+    let cert = params
+        .signed_by(&key, issuer)
+        .map_err(certificate(format!("signing {holder}'s certificate")))?;
     files.push(write_public(
         &dir.join(format!("{holder}.pem")),
         &cert.pem(),
@@ -330,7 +460,7 @@ fn issue(
         cart_config(dir, holder, endpoints)
     };
     let config_file = dir.join(format!("{holder}.json5"));
-    let text = serde_json::to_string_pretty(&config)?;
+    let text = pretty(&config);
     files.push(write_public(&config_file, &(text + "\n"))?);
     Ok((holder.to_owned(), config_file))
 }
@@ -459,12 +589,12 @@ const FOLDER_MODE: u32 = 0o755;
 
 /// Sets `path`'s permission bits to exactly `mode` (the umask never widens
 /// nor narrows what is written).
-fn set_mode(path: &Path, mode: u32) -> anyhow::Result<()> {
+fn set_mode(path: &Path, mode: u32) -> Result<(), PkiError> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode))
-            .with_context(|| format!("cannot set the permissions of {}", path.display()))?;
+            .map_err(io("set the permissions of", path))?;
     }
     #[cfg(not(unix))]
     let _ = (path, mode);
@@ -474,7 +604,7 @@ fn set_mode(path: &Path, mode: u32) -> anyhow::Result<()> {
 /// Creates `dir` and its missing parents as [`FOLDER_MODE`] (less what the
 /// umask takes away); a folder that is there already loses group and other
 /// write permission, if it had them.
-fn create_folder(dir: &Path) -> anyhow::Result<()> {
+fn create_folder(dir: &Path) -> Result<(), PkiError> {
     let mut builder = std::fs::DirBuilder::new();
     builder.recursive(true);
     #[cfg(unix)]
@@ -482,14 +612,12 @@ fn create_folder(dir: &Path) -> anyhow::Result<()> {
         use std::os::unix::fs::DirBuilderExt;
         builder.mode(FOLDER_MODE);
     }
-    builder
-        .create(dir)
-        .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    builder.create(dir).map_err(io("create folder", dir))?;
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
         let mode = std::fs::metadata(dir)
-            .with_context(|| format!("cannot read {}", dir.display()))?
+            .map_err(io("read", dir))?
             .permissions()
             .mode()
             & 0o7777;
@@ -501,7 +629,7 @@ fn create_folder(dir: &Path) -> anyhow::Result<()> {
 }
 
 /// Writes (or replaces) a public file with [`PUBLIC_MODE`].
-fn write_public(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
+fn write_public(path: &Path, text: &str) -> Result<PathBuf, PkiError> {
     let mut options = std::fs::OpenOptions::new();
     options.write(true).create(true).truncate(true);
     #[cfg(unix)]
@@ -509,21 +637,19 @@ fn write_public(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
         use std::os::unix::fs::OpenOptionsExt;
         options.mode(PUBLIC_MODE);
     }
-    let mut file = options
-        .open(path)
-        .with_context(|| format!("cannot create {}", path.display()))?;
+    let mut file = options.open(path).map_err(io("create", path))?;
     // Created with the mode less the umask, or there before with its own:
     // set it outright.
     set_mode(path, PUBLIC_MODE)?;
     file.write_all(text.as_bytes())
         .and_then(|_| file.sync_all())
-        .with_context(|| format!("cannot write {}", path.display()))?;
+        .map_err(io("write", path))?;
     Ok(path.to_owned())
 }
 
 /// Writes a private key readable and writable by its owner only (created so,
 /// never widened afterwards).
-fn write_secret(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
+fn write_secret(path: &Path, text: &str) -> Result<PathBuf, PkiError> {
     let mut options = std::fs::OpenOptions::new();
     options.write(true).create_new(true);
     #[cfg(unix)]
@@ -531,13 +657,11 @@ fn write_secret(path: &Path, text: &str) -> anyhow::Result<PathBuf> {
         use std::os::unix::fs::OpenOptionsExt;
         options.mode(SECRET_MODE);
     }
-    let mut file = options
-        .open(path)
-        .with_context(|| format!("cannot create {}", path.display()))?;
+    let mut file = options.open(path).map_err(io("create", path))?;
     set_mode(path, SECRET_MODE)?;
     file.write_all(text.as_bytes())
         .and_then(|_| file.sync_all())
-        .with_context(|| format!("cannot write {}", path.display()))?;
+        .map_err(io("write", path))?;
     Ok(path.to_owned())
 }
 
@@ -611,7 +735,7 @@ mod tests {
             e.contains("already has a certificate") && e.contains("pki revoke"),
             "{e}"
         );
-        let e = format!("{:#}", add(&dir.path().join("none"), "robot4").unwrap_err());
+        let e = b2b_errors::chain(&add(&dir.path().join("none"), "robot4").unwrap_err());
         assert!(e.contains("cannot read the authority's key"), "{e}");
     }
 
@@ -665,7 +789,7 @@ mod tests {
         let list = std::fs::read_to_string(d.join(REVOKED)).unwrap();
         assert_eq!(list.lines().count(), 2, "{list}");
         // Unknown holders and broken lists are named.
-        let e = format!("{:#}", revoke(d, "robot9").unwrap_err());
+        let e = b2b_errors::chain(&revoke(d, "robot9").unwrap_err());
         assert!(e.contains("robot9") && e.contains("robot1, robot2"), "{e}");
         std::fs::write(d.join(REVOKED), format!("{list}not-a-fingerprint\n")).unwrap();
         let e = Verifier::from_file(&d.join(CA_CERT))
@@ -689,7 +813,7 @@ mod tests {
             (vec!["a/b"], "robot id 'a/b'"),
         ] {
             let robots: Vec<String> = robots.into_iter().map(String::from).collect();
-            let e = format!("{:#}", init(dir.path(), &robots, &at).unwrap_err());
+            let e = b2b_errors::chain(&init(dir.path(), &robots, &at).unwrap_err());
             assert!(e.contains(what), "{robots:?}: {e}");
         }
         let e = Endpoints::at("tcp/127.0.0.1:7447").unwrap_err().to_string();
