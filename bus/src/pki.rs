@@ -132,7 +132,7 @@ pub enum PkiError {
     },
 }
 
-fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> PkiError + '_ {
+fn io<'a>(what: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> PkiError + 'a {
     move |source| PkiError::Io {
         what,
         path: path.to_owned(),
@@ -799,6 +799,22 @@ mod tests {
             e.contains(REVOKED) && e.contains("line 3") && e.contains("not-a-fingerprint"),
             "{e}"
         );
+    }
+
+    /// Each wrapping error names what it was doing and prints its cause once.
+    #[test]
+    fn wrapped_errors_print_their_cause_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let at = Endpoints::at(DEFAULT_TLS_ENDPOINT).unwrap();
+        let bad_id = init(dir.path(), &["a/b".to_owned()], &at).unwrap_err();
+        assert!(matches!(bad_id, PkiError::RobotId { .. }), "{bad_id:?}");
+        b2b_errors::assert_cause_once(&bad_id);
+        let no_authority = add(&dir.path().join("none"), "robot4").unwrap_err();
+        assert!(
+            matches!(no_authority, PkiError::Io { .. }),
+            "{no_authority:?}"
+        );
+        b2b_errors::assert_cause_once(&no_authority);
     }
 
     #[test]
