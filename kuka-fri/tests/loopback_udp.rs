@@ -63,7 +63,7 @@ fn client_and_simulated_controller_in_two_processes() {
             "--send-period-ms",
             "4",
             "--duration-ms",
-            "6000",
+            "10000",
             "--command",
         ])
         .args(["--loss", "0.01", "--seed", "3"])
@@ -83,32 +83,45 @@ fn client_and_simulated_controller_in_two_processes() {
         client
             .move_to(target)
             .map_err(|e| format!("move_to: {e}"))?;
-        std::thread::sleep(Duration::from_millis(300));
-        let now = client.latest().ok_or("no joints")?;
-        let err = now
-            .q
-            .iter()
-            .zip(&target)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
-        if err > 1e-3 {
-            return Err(format!("arm at {:?}, error {err}", now.q));
-        }
+        // The arm reaches the target (polled: a busy machine delays the report, not the
+        // arrival).
+        let arrived = Instant::now() + Duration::from_secs(3);
+        let now = loop {
+            let now = client.latest().ok_or("no joints")?;
+            let err = now
+                .q
+                .iter()
+                .zip(&target)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            if err <= 1e-3 {
+                break now;
+            }
+            if Instant::now() > arrived {
+                return Err(format!("arm at {:?}, error {err}", now.q));
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
         if now.timestamp <= first.timestamp {
             return Err("controller time stamp did not advance".into());
         }
-        if !client.is_still(Duration::from_millis(200), 5e-4) {
-            return Err("arm not reported still after the motion".into());
+        // Then still: no joint moved more than 0.5 mrad over 200 ms of reports.
+        let settled = Instant::now() + Duration::from_secs(3);
+        while !client.is_still(Duration::from_millis(200), 5e-4) {
+            if Instant::now() > settled {
+                return Err("arm not reported still after the motion".into());
+            }
+            std::thread::sleep(Duration::from_millis(20));
         }
         // The controller closes the session at the end of its run: IDLE, no more replies.
         client
-            .wait_for_state(SessionState::Idle, Duration::from_secs(8))
+            .wait_for_state(SessionState::Idle, Duration::from_secs(14))
             .map_err(|e| format!("{e}; state {}", client.state()))?;
         Ok(())
     })();
 
     // Bounded wait for the child, whatever happened above.
-    let deadline = Instant::now() + Duration::from_secs(15);
+    let deadline = Instant::now() + Duration::from_secs(20);
     let status = loop {
         if let Some(s) = child.try_wait().expect("try_wait") {
             break Some(s);
@@ -128,12 +141,24 @@ fn client_and_simulated_controller_in_two_processes() {
         "child failed: {status:?}\n{stdout}\n{stderr}"
     );
     assert!(stdout.contains("violations=0"), "{stdout}");
+    // The session's states in order. A busy machine may drop the quality and abort the
+    // overlay once it is active (back to MONITORING_WAIT, never a violation: asserted
+    // above); the session still starts so and ends in IDLE.
+    let states = stdout
+        .split_whitespace()
+        .find_map(|w| w.strip_prefix("states="))
+        .unwrap_or_else(|| panic!("no states: {stdout}"));
     assert!(
-        stdout.contains(
-            "states=MONITORING_WAIT,MONITORING_READY,COMMANDING_WAIT,COMMANDING_ACTIVE,IDLE"
-        ),
+        states.starts_with("MONITORING_WAIT,MONITORING_READY,COMMANDING_WAIT,COMMANDING_ACTIVE")
+            && states.ends_with(",IDLE"),
         "{stdout}"
     );
+    if states != "MONITORING_WAIT,MONITORING_READY,COMMANDING_WAIT,COMMANDING_ACTIVE,IDLE" {
+        assert!(
+            !stdout.contains("aborted=0 "),
+            "states {states} without an abort: {stdout}"
+        );
+    }
     assert!(stdout.contains("malformed=0 "), "{stdout}");
     assert!(stdout.contains("bad_reflections=0 "), "{stdout}");
     assert!(stdout.contains("foreign=0 "), "{stdout}");
