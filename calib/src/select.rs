@@ -320,12 +320,7 @@ impl Selection {
         let chol = covariance.clone().cholesky()?;
         let mut sum = 0.0;
         for (fold, bases) in self.fold_bases[k].iter().enumerate() {
-            let bases = bases.as_ref()?;
-            let mut d = DVector::zeros(dim);
-            for (r, (b, full)) in bases.iter().zip(ref_from_base).enumerate() {
-                d.rows_mut(6 * r, 6)
-                    .copy_from(&crate::pose::left_difference(b, full));
-            }
+            let d = stacked_difference(bases.as_ref()?, ref_from_base);
             let m = self.held[fold] as f64;
             let w = (self.total as f64 - m) / m.max(1.0);
             sum += w * d.dot(&chol.solve(&d));
@@ -333,9 +328,7 @@ impl Selection {
         let s = sum / (self.fold_bases[k].len() * dim) as f64;
         s.is_finite().then_some(s)
     }
-}
 
-impl Selection {
     /// The candidates whose held-out figure lies within [`MARGIN`] of the
     /// chosen one's (the chosen one excluded), and the covariance their spread
     /// about the chosen estimate adds to its own (see the module's
@@ -346,10 +339,10 @@ impl Selection {
     pub fn model_spread(&self) -> Option<(Vec<Candidate>, DMatrix<f64>)> {
         let kc = CANDIDATES.iter().position(|c| *c == self.chosen)?;
         let chosen = self.held_out(self.chosen)?;
-        let chosen_folds = self.fold_bases[kc]
-            .iter()
-            .map(Option::as_ref)
-            .collect::<Option<Vec<_>>>()?;
+        let folds_of = |k: usize| -> Option<Vec<&Vec<Iso3>>> {
+            self.fold_bases[k].iter().map(Option::as_ref).collect()
+        };
+        let chosen_folds = folds_of(kc)?;
         let dim = 6 * chosen_folds.first()?.len();
         let mut sum = DMatrix::zeros(dim, dim);
         let mut members = Vec::new();
@@ -357,27 +350,32 @@ impl Selection {
             if k == kc || figure.is_none_or(|v| v > chosen * (1.0 + MARGIN)) {
                 continue;
             }
-            let Some(folds) = self.fold_bases[k]
-                .iter()
-                .map(Option::as_ref)
-                .collect::<Option<Vec<_>>>()
-            else {
+            let Some(folds) = folds_of(k) else {
                 continue;
             };
-            let mut mean = DVector::zeros(dim);
-            for (bases, chosen_bases) in folds.iter().zip(&chosen_folds) {
-                for (r, (b, c)) in bases.iter().zip(chosen_bases.iter()).enumerate() {
-                    let mut rows = mean.rows_mut(6 * r, 6);
-                    rows += crate::pose::left_difference(b, c);
-                }
-            }
-            mean /= folds.len() as f64;
+            let mean = folds
+                .iter()
+                .zip(&chosen_folds)
+                .map(|(bases, chosen_bases)| stacked_difference(bases, chosen_bases))
+                .fold(DVector::zeros(dim), |a, d| a + d)
+                / folds.len() as f64;
             sum += &mean * mean.transpose();
             members.push(*candidate);
         }
         let n = (members.len() + 1) as f64;
         Some((members, sum / n))
     }
+}
+
+/// The left differences of `a` from `b`, robot by robot, stacked (6 rows per
+/// robot of `b`).
+fn stacked_difference(a: &[Iso3], b: &[Iso3]) -> DVector<f64> {
+    let mut d = DVector::zeros(6 * b.len());
+    for (r, (x, y)) in a.iter().zip(b).enumerate() {
+        d.rows_mut(6 * r, 6)
+            .copy_from(&crate::pose::left_difference(x, y));
+    }
+    d
 }
 
 /// Cross-validates [`CANDIDATES`] on the robots' captures; `None` when the
