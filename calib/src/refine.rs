@@ -1506,9 +1506,17 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Compressed {
     }
 }
 
+/// Levenberg-Marquardt's evaluation budget per parameter ([`minimise`]).
+const PATIENCE: usize = 40;
+
 fn minimise(engine: Engine) -> Result<Engine, CalibError> {
     // Relative tolerances of 1e-7 stop far below the noise (parameters move by
     // ~1e-7 of their size) and save a third of the evaluations of the defaults.
+    // A fit that holds converges in a few evaluations (over the real splits'
+    // 297 fits: median 5, 90% within 17, the slowest 701 for 24 parameters). One
+    // whose model does not hold (intrinsics 10% off: residuals of many pixels)
+    // converges linearly, taking thousands that only polish a fit the checks then
+    // name as wrong; a patience of 40 (evaluations per parameter) stops it there.
     let problem = Compressed {
         engine,
         cache: std::cell::RefCell::new(None),
@@ -1516,7 +1524,7 @@ fn minimise(engine: Engine) -> Result<Engine, CalibError> {
     let (problem, report) = LevenbergMarquardt::new()
         .with_ftol(1e-7)
         .with_xtol(1e-7)
-        .with_patience(200)
+        .with_patience(PATIENCE)
         .minimize(problem);
     let engine = problem.engine;
     tracing::trace!(termination = ?report.termination, evaluations = report.number_of_evaluations, "lm");

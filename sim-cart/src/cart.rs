@@ -64,9 +64,13 @@ pub struct CartOptions {
     pub frame_period: Duration,
 }
 
-/// The simulated camera's frame period: 15 frames per second, a RealSense
-/// colour stream's lower setting.
-pub const FRAME_PERIOD: Duration = Duration::from_nanos(1_000_000_000 / 15);
+/// The simulated camera's frame period: 6 frames per second, a RealSense colour
+/// stream's lowest setting. Rendering a frame takes one core tens of milliseconds,
+/// so two carts at 15 frames per second would take a two-core machine from the
+/// agents they simulate for (and deliver fewer than 15 anyway); at 6 both keep
+/// their rate with room for the agents, and the watch's 5 Hz still gets a new
+/// frame every tick.
+pub const FRAME_PERIOD: Duration = Duration::from_nanos(1_000_000_000 / 6);
 
 /// The command file that bumps `robot`'s cart: a pose `{"t": [x, y, z],
 /// "rpy_deg": [r, p, y]}` (metres, degrees) by which the cart's base moves, in
@@ -102,6 +106,44 @@ fn take_bump(control: &Path, robot: &str) -> anyhow::Result<Option<Iso3>> {
     std::fs::rename(&file, &done)
         .with_context(|| format!("cannot rename {} to {}", file.display(), done.display()))?;
     Ok(Some(delta))
+}
+
+/// Image motion (px per frame) above which a frame is exposed while the camera
+/// moves: a real exposure smears every edge by a pixel or more, and the agent passes
+/// over such frames (it measures only frames exposed after the arm came to rest).
+/// An arm the agent calls still moves less than a hundredth of this per frame.
+pub const MOVING_PX: f64 = 1.0;
+
+/// Samples per edge pixel in a frame exposed while the camera moves: anti-aliasing
+/// finer than the motion's smear shows nothing a real frame would.
+pub const MOVING_EDGE_SAMPLES: usize = 8;
+
+/// The render settings of a frame exposed while the camera moves.
+fn moving(still: &b2b_sim::render::RenderSettings) -> b2b_sim::render::RenderSettings {
+    b2b_sim::render::RenderSettings {
+        edge_samples: MOVING_EDGE_SAMPLES.min(still.edge_samples),
+        varying_samples: 1,
+        ..still.clone()
+    }
+}
+
+/// How far (px) the image of a point 0.25 m in front of the camera moves between
+/// two camera poses, at most: the rotation's angle plus the translation over that
+/// distance, times the focal length.
+fn image_motion_px(a_from_world: &Iso3, b_from_world: &Iso3, focal_px: f64) -> f64 {
+    let a_from_b = a_from_world * b_from_world.inverse();
+    focal_px * (a_from_b.rotation.angle() + a_from_b.translation.vector.norm() / 0.25)
+}
+
+/// The stream of the wobble at the `visit`-th arrival at a configuration (`key`:
+/// the joints' bits).
+fn rest_rng(seed: u64, robot: usize, key: &[u64; 7], visit: u64) -> b2b_sim::Rng {
+    use std::hash::{Hash, Hasher};
+    // A fixed hasher (not `RandomState`): the same rest draws the same wobble in
+    // every run.
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    (seed, robot, key, visit).hash(&mut h);
+    b2b_sim::Rng::seed_from_u64(h.finish())
 }
 
 fn now_ns() -> u64 {
@@ -142,8 +184,11 @@ pub fn run_cart(
     let mut realisation = b2b_sim::Rng::seed_from_u64(opts.seed);
     realisation.set_stream((1u64 << 48) | ((r as u64) << 32));
     let robot = spec.error.realise(&nominal, &mut realisation)?;
+    // Sensor noise: fresh every frame, from the cart's own stream.
     let mut rng = b2b_sim::Rng::seed_from_u64(opts.seed);
     rng.set_stream(0x0ca7_0000 + r as u64);
+    // Arrivals at each configuration, for the wobble's stream (`rest_rng`).
+    let mut arrivals: std::collections::HashMap<[u64; 7], u64> = Default::default();
 
     let cfg = SimConfig {
         send_period_ms: opts.send_period_ms,
@@ -164,8 +209,10 @@ pub fn run_cart(
     .with_context(|| format!("cannot start the FRI server on {}", opts.bind))?;
 
     let settings = scene.render_settings();
+    let moving_settings = moving(&settings);
     let mut rest: Option<(Joints, Iso3)> = None;
-    let mut rendered: Option<((Iso3, bool), b2b_sim::render::Irradiance)> = None;
+    let mut previous_camera: Option<Iso3> = None;
+    let mut rendered: Option<((Iso3, bool, bool), b2b_sim::render::Irradiance)> = None;
     let mut number = 0u64;
     let outcome = (|| -> anyhow::Result<()> {
         let mut next_frame = Instant::now();
@@ -174,6 +221,10 @@ pub fn run_cart(
                 std::thread::sleep(wait);
             }
             next_frame = Instant::now() + opts.frame_period;
+            // The exposure starts no later than the arm's state it shows is read: a
+            // frame stamped after the agent found the arm still shows it still, however
+            // late a busy machine runs this loop.
+            let timestamp_ns = now_ns();
             let s = fri.snapshot();
             if s.heard.unwrap_or(started).elapsed() > opts.idle_timeout {
                 tracing::info!("cart: client silent for {:?}; stopping", opts.idle_timeout);
@@ -203,18 +254,27 @@ pub fn run_cart(
                 );
             }
             // Settle: a fresh repeatability wobble every time the arm comes to rest
-            // somewhere new.
+            // somewhere new, drawn from that rest's own stream (the configuration
+            // and how often the arm has arrived there), so that which wobble a rest
+            // gets does not depend on how many frames the machine rendered on the
+            // way (a busy machine renders fewer).
             let base_from_flange = match rest {
                 Some((q, pose)) if q == s.q => pose,
                 _ => {
-                    let pose = robot.settle(&s.q, &mut rng).true_base_from_flange;
+                    let key = s.q.map(f64::to_bits);
+                    let visit = arrivals.entry(key).or_default();
+                    *visit += 1;
+                    let mut rest_rng = rest_rng(opts.seed, r, &key, *visit);
+                    let pose = robot.settle(&s.q, &mut rest_rng).true_base_from_flange;
                     rest = Some((s.q, pose));
                     pose
                 }
             };
-            let timestamp_ns = now_ns();
             let camera_from_world =
                 (world_from_base * base_from_flange * flange_from_camera).inverse();
+            let fast = previous_camera
+                .is_some_and(|p| image_motion_px(&p, &camera_from_world, camera.fx) > MOVING_PX);
+            previous_camera = Some(camera_from_world);
             let world = if target_taken {
                 &without_target
             } else {
@@ -222,11 +282,12 @@ pub fn run_cart(
             };
             // A still camera in an unchanged scene sees the same irradiance: it is
             // rendered once and exposed afresh (new sensor noise) every frame.
-            let view = (camera_from_world, target_taken);
+            let view = (camera_from_world, target_taken, fast);
             let irradiance = match &rendered {
                 Some((v, irradiance)) if *v == view => irradiance,
                 _ => {
-                    let irradiance = renderer.render(&camera_from_world, world, &settings);
+                    let settings = if fast { &moving_settings } else { &settings };
+                    let irradiance = renderer.render(&camera_from_world, world, settings);
                     &rendered.insert((view, irradiance)).1
                 }
             };
