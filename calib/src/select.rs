@@ -44,14 +44,17 @@
 //! split into its first and last 44 captures, the refinement's four noise
 //! shapes predict the held-out corners within 1% of each other (1.646 to
 //! 1.661 px) while their bases differ by millimetres. Which of them
-//! is right the data do not say, so the bound must hold all of them
-//! ([`Selection::model_spread`]): the chosen estimate's covariance gains their
-//! spread about it, `Σ δ_i δ_iᵀ / (|S| + 1)` over the agreeing candidates `S`
-//! (the chosen one counted with `δ = 0`), each `δ_i` the mean over the folds of
-//! its fit less the chosen one's. Where the models agree (a rendered world the
-//! noise model knows) the spread is a fraction of the covariance; on that
-//! Denso split it takes the bound from 0.72x the true p95 to 0.98x
-//! (`pipeline/tests/real_splits.rs`). It is added where the scale is applied.
+//! is right the data do not say, so the estimate is their mean and the bound
+//! holds their spread about it ([`Selection::agreement`]): with `δ_i` the mean
+//! over the folds of each agreeing candidate's fit less the chosen one's (the
+//! chosen one counted with `δ = 0`), the bases move by `δ̄ = Σ δ_i / (|S| + 1)`
+//! and the covariance gains `Σ (δ_i - δ̄)(δ_i - δ̄)ᵀ / (|S| + 1)`. Choosing one
+//! of candidates the evidence cannot rank is a draw; their mean is the estimate
+//! whose expected error over the draw is least. Where the models agree (a
+//! rendered world the noise model knows) both are a fraction of the
+//! covariance; on that Denso split the mean is 11.9 mm from the truth and the
+//! bound 1.09x the true p95 (`pipeline/tests/real_splits.rs`). Both are
+//! applied where the scale is.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -330,13 +333,15 @@ impl Selection {
     }
 
     /// The candidates whose held-out figure lies within [`MARGIN`] of the
-    /// chosen one's (the chosen one excluded), and the covariance their spread
-    /// about the chosen estimate adds to its own (see the module's
-    /// documentation): `Σ δ_i δ_iᵀ / (|S| + 1)`, `δ_i` the mean over the folds
-    /// of the candidate's bases less the chosen one's (stacked left
-    /// differences, robots 1..N). `None` when the chosen candidate's fold fits
-    /// are missing; a candidate whose fit failed on a fold is left out.
-    pub fn model_spread(&self) -> Option<(Vec<Candidate>, DMatrix<f64>)> {
+    /// chosen one's (the chosen one excluded), their mean and their spread (see
+    /// the module's documentation). With `δ_i` the mean over the folds of a
+    /// candidate's bases less the chosen one's (stacked left differences,
+    /// robots 1..N; the chosen one's `δ = 0`), the mean is
+    /// `δ̄ = Σ δ_i / (|S| + 1)` and the spread about it
+    /// `Σ (δ_i - δ̄)(δ_i - δ̄)ᵀ / (|S| + 1)`, the chosen one counted in both.
+    /// `None` when the chosen candidate's fold fits are missing; a candidate
+    /// whose fit failed on a fold is left out.
+    pub fn agreement(&self) -> Option<Agreement> {
         let kc = CANDIDATES.iter().position(|c| *c == self.chosen)?;
         let chosen = self.held_out(self.chosen)?;
         let folds_of = |k: usize| -> Option<Vec<&Vec<Iso3>>> {
@@ -344,7 +349,7 @@ impl Selection {
         };
         let chosen_folds = folds_of(kc)?;
         let dim = 6 * chosen_folds.first()?.len();
-        let mut sum = DMatrix::zeros(dim, dim);
+        let mut deltas = Vec::new();
         let mut members = Vec::new();
         for (k, (candidate, figure)) in self.held_out_px.iter().enumerate() {
             if k == kc || figure.is_none_or(|v| v > chosen * (1.0 + MARGIN)) {
@@ -353,18 +358,42 @@ impl Selection {
             let Some(folds) = folds_of(k) else {
                 continue;
             };
-            let mean = folds
-                .iter()
-                .zip(&chosen_folds)
-                .map(|(bases, chosen_bases)| stacked_difference(bases, chosen_bases))
-                .fold(DVector::zeros(dim), |a, d| a + d)
-                / folds.len() as f64;
-            sum += &mean * mean.transpose();
+            deltas.push(
+                folds
+                    .iter()
+                    .zip(&chosen_folds)
+                    .map(|(bases, chosen_bases)| stacked_difference(bases, chosen_bases))
+                    .fold(DVector::zeros(dim), |a, d| a + d)
+                    / folds.len() as f64,
+            );
             members.push(*candidate);
         }
         let n = (members.len() + 1) as f64;
-        Some((members, sum / n))
+        let mean = deltas.iter().fold(DVector::zeros(dim), |a, d| a + d) / n;
+        // The chosen one's δ = 0 lies -δ̄ from the mean.
+        let mut spread = &mean * mean.transpose();
+        for d in &deltas {
+            let e = d - &mean;
+            spread += &e * e.transpose();
+        }
+        Some(Agreement {
+            members,
+            mean,
+            spread: spread / n,
+        })
     }
+}
+
+/// The candidates the held-out evidence cannot tell from the chosen one
+/// ([`Selection::agreement`]).
+#[derive(Debug, Clone)]
+pub struct Agreement {
+    pub members: Vec<Candidate>,
+    /// Their bases' mean, the chosen one's included, less the chosen one's
+    /// (stacked left perturbations, robots 1..N).
+    pub mean: DVector<f64>,
+    /// Their spread about that mean (a covariance of the bases).
+    pub spread: DMatrix<f64>,
 }
 
 /// The left differences of `a` from `b`, robot by robot, stacked (6 rows per
@@ -524,9 +553,9 @@ pub struct SelectedRun {
     /// kept fewer than [`MIN_TRAINING_FOR_SCALE`] captures of a robot.
     pub fold_scatter: Option<f64>,
     /// The candidates the held-out evidence could not tell from the chosen
-    /// one, whose spread about it was added to the covariance
-    /// ([`Selection::model_spread`]); empty where none agreed or the spread
-    /// was not applied (as the scale).
+    /// one: the bases are their mean with the chosen one's, and their spread
+    /// about it was added to the covariance ([`Selection::agreement`]); empty
+    /// where none agreed or the spread was not applied (as the scale).
     pub agreeing: Vec<Candidate>,
 }
 
@@ -581,11 +610,18 @@ pub fn estimate_bases_selected_with(
     let mut agreeing = Vec::new();
     if let Some(s) = spread_scale {
         run.estimate.covariance *= s;
-        if let Some((members, spread)) = selection.model_spread()
-            && spread.shape() == run.estimate.covariance.shape()
+        if let Some(agreement) = selection.agreement()
+            && agreement.spread.shape() == run.estimate.covariance.shape()
         {
-            run.estimate.covariance += spread;
-            agreeing = members;
+            // The data cannot say which of them is right: the estimate is their
+            // mean, and its covariance holds their spread about it.
+            for (r, base) in run.estimate.ref_from_base.iter_mut().enumerate() {
+                let d =
+                    nalgebra::Vector6::from_iterator(agreement.mean.rows(6 * r, 6).iter().copied());
+                *base = crate::pose::perturb_left(&d, base);
+            }
+            run.estimate.covariance += agreement.spread;
+            agreeing = agreement.members;
         }
     }
     let used: Vec<Vec<BoardCapture>> = robots
@@ -639,4 +675,74 @@ fn closed_form_run(
         splits: vec![None; robots.len() - 1],
         estimate,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    fn base(x: f64) -> Vec<Iso3> {
+        vec![Iso3::from_parts(
+            Translation3::new(1.0 + x, 0.5, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+        )]
+    }
+
+    /// Three candidates: the chosen one, one within the margin whose fold fits
+    /// sit 2 mm and 4 mm along x from the chosen one's (mean 3 mm), and one
+    /// beyond the margin whose fits are far off.
+    fn selection() -> Selection {
+        let figures = [1.0, 1.04, 1.2];
+        let offsets = [[0.0, 0.0], [0.002, 0.004], [0.05, 0.05]];
+        let mut held_out_px = Vec::new();
+        let mut fold_bases = Vec::new();
+        for (k, c) in CANDIDATES.iter().enumerate() {
+            let (figure, bases) = match k {
+                0..=2 => (
+                    Some(figures[k]),
+                    offsets[k].iter().map(|x| Some(base(*x))).collect(),
+                ),
+                _ => (None, vec![None, None]),
+            };
+            held_out_px.push((*c, figure));
+            fold_bases.push(bases);
+        }
+        Selection {
+            chosen: CANDIDATES[0],
+            held_out_px,
+            folds: 2,
+            fold_bases,
+            held: vec![10, 10],
+            total: 20,
+            min_training: 10,
+        }
+    }
+
+    #[test]
+    fn the_agreeing_candidates_mean_and_spread_about_it() {
+        let a = selection().agreement().unwrap();
+        assert_eq!(a.members, vec![CANDIDATES[1]]);
+        // δ = 3 mm along x for the member, 0 for the chosen one: the mean is
+        // 1.5 mm, the spread (1.5 mm)² along x and nothing else.
+        assert!((a.mean[3] - 0.0015).abs() < 1e-12, "{}", a.mean);
+        assert!(
+            a.mean
+                .iter()
+                .enumerate()
+                .all(|(i, v)| i == 3 || v.abs() < 1e-12)
+        );
+        assert!((a.spread[(3, 3)] - 0.0015f64.powi(2)).abs() < 1e-15);
+        assert!((a.spread.sum() - a.spread[(3, 3)]).abs() < 1e-15);
+    }
+
+    #[test]
+    fn no_agreeing_candidate_leaves_the_chosen_estimate() {
+        let mut s = selection();
+        s.held_out_px[1].1 = Some(1.2);
+        let a = s.agreement().unwrap();
+        assert!(a.members.is_empty());
+        assert_eq!(a.mean.norm(), 0.0);
+        assert_eq!(a.spread.norm(), 0.0);
+    }
 }

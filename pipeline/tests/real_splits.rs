@@ -208,15 +208,16 @@ fn tabb_denso_split() {
     let s = split("tabb-denso-ds1", &chosen_base1_from_base2());
     let (f, _) = measure("tabb-denso-ds1", &s);
     // docs/accuracy.md
-    within("ours", f.ours_mm, 4.61);
+    within("ours", f.ours_mm, 4.12);
     within("park, refined cameras", f.park_refined_camera_mm, 6.91);
-    within("predicted / true p95", f.ratio(), 1.31);
+    within("predicted / true p95", f.ratio(), 1.44);
+    assert!(f.ratio() >= 1.0, "the bound below the truth: {}", f.ratio());
     within("OpenCV's park", f.opencv_park_mm, 19.3);
     within("OpenCV's best pair", f.opencv_best_mm, 5.17);
     within(
         "ours / OpenCV's best pair",
         f.ours_mm / f.opencv_best_mm,
-        0.89,
+        0.80,
     );
     // The held-out captures keep the default: the refined shapes predict them
     // at 2.04-2.08 px RMS, the closed forms (on the jointly refined cameras)
@@ -233,18 +234,19 @@ fn tabb_denso_halves() {
     let s = split_by("tabb-denso-ds1", &chosen_base1_from_base2(), Deal::Halves);
     let (f, run) = measure("tabb-denso-ds1 halves", &s);
     // docs/accuracy.md: ahead of what a user of OpenCV picks, behind its best
-    // pair chosen by the truth, and a bound just below the truth (the halves'
+    // pair chosen by the truth, and a bound just above the truth (the halves'
     // own systematic errors differ, and nothing in one half's captures shows the
-    // part common to all of them).
-    within("ours", f.ours_mm, 14.6);
+    // part common to all of them; the agreeing models' spread holds it).
+    within("ours", f.ours_mm, 11.9);
     within("OpenCV's park", f.opencv_park_mm, 43.8);
     within("OpenCV's best pair", f.opencv_best_mm, 6.24);
     within(
         "ours / OpenCV's best pair",
         f.ours_mm / f.opencv_best_mm,
-        2.34,
+        1.91,
     );
-    within("predicted / true p95", f.ratio(), 0.98);
+    within("predicted / true p95", f.ratio(), 1.09);
+    assert!(f.ratio() >= 1.0, "the bound below the truth: {}", f.ratio());
     // The held-out captures choose the refinement even so (1.66 px against
     // Park's 2.47 on the refined cameras): they test each robot's own fit, and
     // nothing in them checks the bases against each other.
@@ -253,8 +255,9 @@ fn tabb_denso_halves() {
     within("held-out, park", f.held_out_park_px, 2.47);
     within("park, refined cameras", f.park_refined_camera_mm, 6.15);
     // The refined shapes predict the held-out corners within 1% of each other
-    // (1.646 to 1.661 px) while their bases lie apart: the bound holds their
-    // spread (0.72x without it).
+    // (1.646 to 1.661 px) while their bases lie apart: the estimate is their
+    // mean (14.6 mm with the chosen shape alone) and the bound holds their
+    // spread about it (0.72x the truth without it).
     let selection = run.result.model_selection.as_ref().unwrap();
     for (shape, px) in [
         ("refined/base", 1.646),
@@ -333,8 +336,8 @@ fn rendered_sets_bound_ratio() {
     // docs/accuracy.md: (set, method, predicted / true p95)
     for (name, method, expected) in [
         ("sim-checkerboard-2x12", B2bMethod::Board, 1.99),
-        ("sim-multimarker-4x3-2x10", B2bMethod::Multimarker, 0.90),
-        ("sim-multimarker-corner-2x10", B2bMethod::Multimarker, 1.35),
+        ("sim-multimarker-4x3-2x10", B2bMethod::Multimarker, 0.98),
+        ("sim-multimarker-corner-2x10", B2bMethod::Multimarker, 1.70),
     ] {
         let dir = common::bundled(name);
         let ds = Dataset::load(&dir).unwrap();

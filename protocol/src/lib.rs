@@ -344,9 +344,10 @@ pub struct ModelSelection {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fold_scatter: Option<f64>,
     /// The candidates whose held-out figure lay within the selection's margin
-    /// of the chosen one's: the evidence cannot tell them apart, so their
-    /// spread about the chosen estimate is part of its covariance (empty when
-    /// none agreed or the folds were too small for their fits to be evidence).
+    /// of the chosen one's: the evidence cannot tell them apart, so the bases
+    /// are their mean with the chosen one's and their spread about it is part
+    /// of the covariance (empty when none agreed or the folds were too small
+    /// for their fits to be evidence).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub agreeing: Vec<String>,
 }

@@ -446,7 +446,7 @@ fn print_model_selection(m: &b2b_protocol::ModelSelection) {
     );
     if !m.agreeing.is_empty() {
         println!(
-            "  the held-out captures cannot tell {} from {}: their spread is part of the bound",
+            "  the held-out captures cannot tell {} from {}: the bases are their mean, their spread is part of the bound",
             m.agreeing.join(", "),
             m.chosen
         );
