@@ -108,31 +108,23 @@ fn take_bump(control: &Path, robot: &str) -> anyhow::Result<Option<Iso3>> {
     Ok(Some(delta))
 }
 
-/// Image motion (px per frame) above which a frame is exposed while the camera
-/// moves: a real exposure smears every edge by a pixel or more, and the agent passes
-/// over such frames (it measures only frames exposed after the arm came to rest).
-/// An arm the agent calls still moves less than a hundredth of this per frame.
-pub const MOVING_PX: f64 = 1.0;
+/// How long an exposure lasts: a frame is exposed while the arm moves when its
+/// joints change within this time after the state the frame shows is read.
+pub const EXPOSURE: Duration = Duration::from_millis(10);
 
-/// Samples per edge pixel in a frame exposed while the camera moves: anti-aliasing
-/// finer than the motion's smear shows nothing a real frame would.
+/// Samples per edge pixel in a frame exposed while the arm moves: the motion
+/// smears every edge over many pixels in a real exposure, so anti-aliasing finer
+/// than that shows nothing a real frame would; the agent passes over such frames
+/// (it measures only frames exposed after the arm came to rest).
 pub const MOVING_EDGE_SAMPLES: usize = 8;
 
-/// The render settings of a frame exposed while the camera moves.
+/// The render settings of a frame exposed while the arm moves.
 fn moving(still: &b2b_sim::render::RenderSettings) -> b2b_sim::render::RenderSettings {
     b2b_sim::render::RenderSettings {
         edge_samples: MOVING_EDGE_SAMPLES.min(still.edge_samples),
         varying_samples: 1,
         ..still.clone()
     }
-}
-
-/// How far (px) the image of a point 0.25 m in front of the camera moves between
-/// two camera poses, at most: the rotation's angle plus the translation over that
-/// distance, times the focal length.
-fn image_motion_px(a_from_world: &Iso3, b_from_world: &Iso3, focal_px: f64) -> f64 {
-    let a_from_b = a_from_world * b_from_world.inverse();
-    focal_px * (a_from_b.rotation.angle() + a_from_b.translation.vector.norm() / 0.25)
 }
 
 /// The stream of the wobble at the `visit`-th arrival at a configuration (`key`:
@@ -211,7 +203,6 @@ pub fn run_cart(
     let settings = scene.render_settings();
     let moving_settings = moving(&settings);
     let mut rest: Option<(Joints, Iso3)> = None;
-    let mut previous_camera: Option<Iso3> = None;
     let mut rendered: Option<((Iso3, bool, bool), b2b_sim::render::Irradiance)> = None;
     let mut number = 0u64;
     let outcome = (|| -> anyhow::Result<()> {
@@ -272,9 +263,11 @@ pub fn run_cart(
             };
             let camera_from_world =
                 (world_from_base * base_from_flange * flange_from_camera).inverse();
-            let fast = previous_camera
-                .is_some_and(|p| image_motion_px(&p, &camera_from_world, camera.fx) > MOVING_PX);
-            previous_camera = Some(camera_from_world);
+            // Moving during the exposure: the joints change within it. An arm at
+            // rest holds its joints exactly (the wobble above is drawn once per
+            // rest), so every frame exposed after it stopped is rendered in full.
+            std::thread::sleep(EXPOSURE);
+            let fast = fri.snapshot().q != s.q;
             let world = if target_taken {
                 &without_target
             } else {
