@@ -20,6 +20,8 @@
 use b2b_robot::Joints;
 use nalgebra::{Isometry3, Point2, Point3};
 
+pub mod plan;
+
 type Iso3 = Isometry3<f64>;
 
 /// Tries per viewpoint, the first included (so at most three re-centrings).
@@ -53,6 +55,36 @@ pub const VISIT_BUDGET_FACTOR: usize = 2;
 /// A plan has at least this many viewpoints.
 pub const MIN_PLAN_COUNT: usize = 3;
 
+/// Good captures (their motions passing the degeneracy checks) before an
+/// agent's status says it has enough data: a first hand-eye from ten is good to
+/// a few tenths of a millimetre, enough for the operator to go on; the
+/// automatic routine itself stops only by its own rule ([`MIN_GOOD`] and the
+/// hand-eye's sigmas).
+pub const ENOUGH_CAPTURES: usize = 10;
+
+/// Whether the agent fits its camera's intrinsics again to every good
+/// capture's corners after a capture: for a camera that gave none
+/// (`estimated`), once `good` captures (this one included) reach the fewest
+/// views the intrinsics are fitted to, and only when this capture added one
+/// (`observed`).
+pub fn refit_intrinsics(estimated: bool, observed: bool, good: usize, min_views: usize) -> bool {
+    estimated && observed && good >= min_views
+}
+
+/// Whether the agent fits the hand-eye after a capture: as soon as the good
+/// captures' motions pass the degeneracy checks (two rotations with
+/// non-parallel axes, not a pure translation), and never from a guessed camera
+/// (intrinsics neither given by the camera nor estimated yet: it would put the
+/// board centimetres off).
+pub fn fit_hand_eye(motions_ok: bool, intrinsics_known: bool) -> bool {
+    motions_ok && intrinsics_known
+}
+
+/// Whether the agent's status says "enough data" ([`ENOUGH_CAPTURES`]).
+pub fn enough_data(motions_ok: bool, good: usize) -> bool {
+    motions_ok && good >= ENOUGH_CAPTURES
+}
+
 /// Viewpoints of a top-up plan when the plan ran out `missing` good captures
 /// short: half as many again (some will be rejected), and two more.
 pub fn top_up(missing: usize) -> usize {
@@ -70,6 +102,20 @@ pub enum RoutineError {
         min: usize,
         value: usize,
     },
+    #[error("{what} must be in {range}, not {value}")]
+    OutOfRange {
+        what: &'static str,
+        value: f64,
+        range: &'static str,
+    },
+    #[error(
+        "plan: the distance range [{near}, {far}] m is not a range of distances above 0.05 m"
+    )]
+    PlanDistances { near: f64, far: f64 },
+    #[error("plan: the target has no points")]
+    NoTargetPoints,
+    #[error("plan: the target's view axis is zero")]
+    ZeroViewAxis,
 }
 
 /// The automatic routine's settings (defaults: the constants above).

@@ -451,3 +451,32 @@ fn settings_that_cannot_work_are_refused() {
         Err(RoutineError::TooSmall { .. })
     ));
 }
+
+/// The agent's fitting rules after each capture.
+mod fitting {
+    use b2b_routine::{ENOUGH_CAPTURES, enough_data, fit_hand_eye, refit_intrinsics};
+
+    #[test]
+    fn intrinsics_are_refitted_only_for_a_camera_without_them_from_enough_views() {
+        assert!(!refit_intrinsics(true, true, 4, 5));
+        assert!(refit_intrinsics(true, true, 5, 5));
+        // Given by the camera: never.
+        assert!(!refit_intrinsics(false, true, 30, 5));
+        // A capture that saw nothing adds no view to fit to.
+        assert!(!refit_intrinsics(true, false, 30, 5));
+    }
+
+    #[test]
+    fn enough_data_needs_the_captures_and_motions_that_pass_the_checks() {
+        assert!(!enough_data(true, ENOUGH_CAPTURES - 1));
+        assert!(enough_data(true, ENOUGH_CAPTURES));
+        assert!(!enough_data(false, 3 * ENOUGH_CAPTURES));
+    }
+
+    #[test]
+    fn the_hand_eye_waits_for_motions_and_a_known_camera() {
+        assert!(fit_hand_eye(true, true));
+        assert!(!fit_hand_eye(false, true));
+        assert!(!fit_hand_eye(true, false));
+    }
+}

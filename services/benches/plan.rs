@@ -15,7 +15,7 @@ use std::path::Path;
 
 use b2b_calib::camera::CameraModel;
 use b2b_robot::Arm;
-use b2b_services::plan::{PlanConfig, PlanScene, plan_viewpoints};
+use b2b_routine::plan::{PlanConfig, PlanScene, plan_viewpoints};
 use b2b_services::setup::CellSetup;
 use criterion::{Criterion, criterion_group, criterion_main};
 
@@ -31,7 +31,7 @@ fn bench(c: &mut Criterion) {
     let camera = CameraModel::new(640, 480, [615.2, 614.8, 321.4, 238.7], &[]).unwrap();
     let scene = PlanScene {
         arm: &arm,
-        guard: &guard,
+        envelope: guard.envelope(),
         camera: &camera,
         base_from_target: setup
             .base_from_target_approx

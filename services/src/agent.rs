@@ -745,9 +745,6 @@ pub fn run_watch(
     Ok(published)
 }
 
-/// Good captures before the status says "enough data" (with the motion checks passed).
-const ENOUGH_CAPTURES: usize = 10;
-
 /// What the capture loop has gathered.
 #[derive(Default)]
 struct CaptureLoop {
@@ -831,10 +828,12 @@ impl CaptureLoop {
         // once there are enough, before any hand-eye (one from a guessed camera
         // would put the board centimetres off).
         let mut camera = None;
-        if cap.intrinsics_estimated
-            && cap.observed.is_ok()
-            && obs.observations.len() >= b2b_pipeline::MIN_VIEWS_FOR_INTRINSICS
-        {
+        if b2b_routine::refit_intrinsics(
+            cap.intrinsics_estimated,
+            cap.observed.is_ok(),
+            obs.observations.len(),
+            b2b_pipeline::MIN_VIEWS_FOR_INTRINSICS,
+        ) {
             match b2b_pipeline::estimate_intrinsics_from_observations(obs.clone()) {
                 Ok(fitted) => {
                     *obs = fitted;
@@ -844,15 +843,13 @@ impl CaptureLoop {
             }
         }
         let intrinsics_known = !cap.intrinsics_estimated || obs.estimated_intrinsics.is_some();
-        // A hand-eye as soon as the motions allow one.
         let poses: Vec<_> = obs
             .observations
             .iter()
             .map(|o| o.board.base_from_flange)
             .collect();
         let motion = check_motions(&poses, &MotionThresholds::default());
-        if motion.is_ok()
-            && intrinsics_known
+        if b2b_routine::fit_hand_eye(motion.is_ok(), intrinsics_known)
             && let Ok(he) = hand_eye(obs, HandEyeChoice::Refined, &opts.refine)
         {
             if cap.intrinsics_estimated {
@@ -885,7 +882,7 @@ impl CaptureLoop {
             s.rejected = rejected;
             s.published = published;
             s.rotation_diversity_deg = motion.as_ref().map_or(0.0, |m| m.max_axis_angle_deg);
-            s.enough_data = motion.is_ok() && good >= ENOUGH_CAPTURES;
+            s.enough_data = b2b_routine::enough_data(motion.is_ok(), good);
             s.message = match &cap.observed {
                 Ok(_) => format!("capture {}: board found", cap.index),
                 Err(r) => format!("capture {} rejected: {}", cap.index, r.reason),

@@ -10,16 +10,15 @@ pub mod coordinator;
 pub mod history;
 pub mod live;
 pub mod outputs;
-pub mod plan;
 pub mod recording;
 pub mod setup;
 pub mod sim_cart;
-pub mod store;
 pub mod watch;
 
 use std::path::Path;
 
 pub use b2b_bus as bus;
+pub use b2b_store as store;
 pub use b2b_bus::{ACCESS_CONTROL_TARGET, AccessRefusals, LogLimiter, pki, signing, warn_limited};
 
 use anyhow::Context;

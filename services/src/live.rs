@@ -22,7 +22,9 @@ use kuka_fri::{FriClient, SafetyGuard, SessionState};
 use nalgebra::{Isometry3, Point2, Point3};
 
 use crate::agent::{CaptureSource, Progress, SourceCapture};
-use crate::plan::{Plan, PlanConfig, PlanScene, Viewpoint, plan_viewpoints, reach, recentre};
+use b2b_routine::plan::{
+    Plan, PlanConfig, PlanScene, Viewpoint, leg_is_safe, plan_viewpoints, reach, recentre,
+};
 use b2b_routine::{BoardInImage, Mode, Routine, Status, Step, View, VisitAction, VisitEvent};
 
 type Iso3 = Isometry3<f64>;
@@ -433,7 +435,7 @@ impl LiveSource {
             .unwrap_or(self.cfg.board_approx);
         let scene = PlanScene {
             arm: &self.arm,
-            guard: &self.guard,
+            envelope: self.guard.envelope(),
             camera: &camera,
             base_from_target: board,
             flange_from_camera: self.cfg.mount_approx,
@@ -755,7 +757,7 @@ impl LiveSource {
         let wanted = recentre(&base_from_camera, centre_in_camera, None);
         let scene = PlanScene {
             arm: &self.arm,
-            guard: &self.guard,
+            envelope: self.guard.envelope(),
             camera,
             base_from_target: self.cfg.board_approx,
             flange_from_camera: self.cfg.mount_approx,
@@ -764,8 +766,9 @@ impl LiveSource {
         };
         match reach(&scene, &wanted, q) {
             Ok((q_new, _))
-                if crate::plan::leg_is_safe(
-                    &self.guard,
+                if leg_is_safe(
+                    self.guard.envelope(),
+                    &self.arm,
                     q,
                     &q_new,
                     self.cfg.plan.path_step_rad,

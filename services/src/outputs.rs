@@ -645,7 +645,7 @@ pub fn print_verification(
 
 /// What `agent auto --dry-run` prints: the planned viewpoints and what was
 /// dropped.
-pub fn print_plan(robot: &str, plan: &crate::plan::Plan) {
+pub fn print_plan(robot: &str, plan: &b2b_routine::plan::Plan) {
     println!(
         "{robot}: {} viewpoints planned from {} candidates; joint travel {:.2} rad",
         plan.viewpoints.len(),

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use b2b_routine::Mode;
 
 use crate::live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource, LiveTarget};
-use crate::plan::PlanConfig;
+use b2b_routine::plan::PlanConfig;
 
 /// One cart's setup (`--setup FILE`, JSON).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -81,7 +81,7 @@ fn wait_for(
 
 /// A cart shifted by 1 mm.
 #[test]
-fn a_cart_shifted_by_1_mm_alarms_within_2_s_and_still_carts_do_not() {
+fn a_cart_shifted_by_1_mm_alarms_and_still_carts_do_not() {
     let a = bumped(&dataset(), "target", &["--t-mm", "1,0,0"]);
     // The base moved 1 mm: the target, seen through robot 2, by about as much.
     assert!((0.5e-3..1.5e-3).contains(&a.shift_m), "{a:?}");
@@ -90,7 +90,7 @@ fn a_cart_shifted_by_1_mm_alarms_within_2_s_and_still_carts_do_not() {
 /// A cart turned by 0.1° about its vertical axis (the board, about 0.5 m from
 /// its base, moves by about 0.9 mm and turns by 0.1°).
 #[test]
-fn a_cart_turned_by_0_1_deg_alarms_within_2_s_and_still_carts_do_not() {
+fn a_cart_turned_by_0_1_deg_alarms_and_still_carts_do_not() {
     let a = bumped(&dataset(), "target", &["--rpy-deg", "0,0,0.1"]);
     assert!(
         (0.05f64.to_radians()..0.15f64.to_radians()).contains(&a.turn_rad),
@@ -102,7 +102,7 @@ fn a_cart_turned_by_0_1_deg_alarms_within_2_s_and_still_carts_do_not() {
 /// lifted with its depth frame (`--observe features`, the board's detection
 /// switched off), and each cart is watched against the scene itself.
 #[test]
-fn a_cart_shifted_by_1_mm_alarms_within_2_s_through_the_scene_features() {
+fn a_cart_shifted_by_1_mm_alarms_through_the_scene_features() {
     let a = bumped(&rgbd_dataset(), "features", &["--t-mm", "1,0,0"]);
     // The scene's centre, seen from robot 2's moved base, moves by about as much.
     assert!((0.5e-3..1.5e-3).contains(&a.shift_m), "{a:?}");
@@ -110,7 +110,7 @@ fn a_cart_shifted_by_1_mm_alarms_within_2_s_through_the_scene_features() {
 
 /// The same, the cart turned by 0.1° about its vertical axis.
 #[test]
-fn a_cart_turned_by_0_1_deg_alarms_within_2_s_through_the_scene_features() {
+fn a_cart_turned_by_0_1_deg_alarms_through_the_scene_features() {
     let a = bumped(&rgbd_dataset(), "features", &["--rpy-deg", "0,0,0.1"]);
     assert!(
         (0.05f64.to_radians()..0.15f64.to_radians()).contains(&a.turn_rad),

@@ -1,5 +1,5 @@
 //! Viewpoint planning for the automatic routine (`agent auto`, and the pose program of
-//! `agent run --sim`).
+//! `agent run --sim`), without I/O.
 //!
 //! Candidates lie on a spherical cap above the board: viewing directions on a Fibonacci
 //! spiral out to the largest tilt, distances spread over the camera's useful range,
@@ -10,14 +10,14 @@
 //! flange is inside the configured workspace box, and every board point projects into
 //! the image with a margin. The kept ones are thinned by farthest-point sampling and
 //! ordered nearest-neighbour in joint space from the start; every leg of the path is
-//! checked at a fine joint step against the same guard, and a viewpoint whose leg
+//! checked at a fine joint step against the same envelope, and a viewpoint whose leg
 //! leaves the workspace is dropped rather than approached.
 
-use anyhow::Context;
 use b2b_calib::camera::CameraModel;
-use b2b_robot::{Arm, IkOptions, Joints};
-use kuka_fri::SafetyGuard;
+use b2b_robot::{Arm, ForwardKinematics, IkOptions, Joints, SafetyEnvelope};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+use crate::RoutineError;
 
 type Iso3 = Isometry3<f64>;
 
@@ -57,26 +57,41 @@ impl Default for PlanConfig {
 
 impl PlanConfig {
     /// Checks the numbers.
-    pub fn validate(&self) -> anyhow::Result<()> {
-        anyhow::ensure!(self.count >= 3, "plan: at least 3 viewpoints are needed");
+    pub fn validate(&self) -> Result<(), RoutineError> {
+        if self.count < 3 {
+            return Err(RoutineError::TooSmall {
+                what: "plan: viewpoints",
+                min: 3,
+                value: self.count,
+            });
+        }
         let [d0, d1] = self.distance_m;
-        anyhow::ensure!(
-            d0.is_finite() && d1.is_finite() && 0.05 < d0 && d0 <= d1,
-            "plan: distance range [{d0}, {d1}] m is not a range of positive distances"
-        );
-        anyhow::ensure!(
-            self.max_tilt_rad.is_finite() && (0.0..1.4).contains(&self.max_tilt_rad),
-            "plan: largest tilt must be in [0, 80) degrees"
-        );
-        anyhow::ensure!(
-            self.max_roll_rad.is_finite()
-                && (0.0..=std::f64::consts::PI).contains(&self.max_roll_rad),
-            "plan: largest roll must be in [0, 180] degrees"
-        );
-        anyhow::ensure!(
-            self.path_step_rad.is_finite() && self.path_step_rad > 0.0,
-            "plan: path step must be > 0"
-        );
+        if !(d0.is_finite() && d1.is_finite() && 0.05 < d0 && d0 <= d1) {
+            return Err(RoutineError::PlanDistances { near: d0, far: d1 });
+        }
+        let out = |what, value: f64, range| RoutineError::OutOfRange { what, value, range };
+        if !(self.max_tilt_rad.is_finite() && (0.0..1.4).contains(&self.max_tilt_rad)) {
+            return Err(out(
+                "plan: largest tilt (rad)",
+                self.max_tilt_rad,
+                "[0, 1.4) (up to 80 degrees)",
+            ));
+        }
+        if !(self.max_roll_rad.is_finite()
+            && (0.0..=std::f64::consts::PI).contains(&self.max_roll_rad))
+        {
+            return Err(out(
+                "plan: largest roll (rad)",
+                self.max_roll_rad,
+                "[0, pi] (up to 180 degrees)",
+            ));
+        }
+        if !(self.path_step_rad.is_finite() && self.path_step_rad > 0.0) {
+            return Err(RoutineError::NotPositive {
+                what: "plan: path step (rad)",
+                value: self.path_step_rad,
+            });
+        }
         Ok(())
     }
 }
@@ -84,8 +99,13 @@ impl PlanConfig {
 /// The scene as the planner knows it (no ground truth: approximate values).
 #[derive(Debug, Clone)]
 pub struct PlanScene<'a> {
+    /// The nominal kinematics: the planner's IK, and the flange positions the
+    /// envelope's workspace box is checked on.
     pub arm: &'a Arm,
-    pub guard: &'a SafetyGuard,
+    /// The envelope the FRI session applies to every command (joint limits
+    /// with the margin, the workspace box): every viewpoint and every leg keeps
+    /// inside it.
+    pub envelope: &'a SafetyEnvelope,
     pub camera: &'a CameraModel,
     /// The board's pose in the base, approximately (a first view, or configuration).
     pub base_from_target: Iso3,
@@ -94,7 +114,7 @@ pub struct PlanScene<'a> {
     /// The target's points in its own frame (corners).
     pub target_points: &'a [Point3<f64>],
     /// Unit direction (target frame) from the target towards where it is seen
-    /// from ([`b2b_pipeline::TargetSpec::view_axis`]: -z for a board).
+    /// from (`b2b_pipeline::TargetSpec::view_axis`: -z for a board).
     pub view_axis: Vector3<f64>,
 }
 
@@ -155,12 +175,22 @@ pub fn all_in_view(
     })
 }
 
-/// Checks the straight joint-space leg `a -> b` against the guard. The joint limits
+/// Checks the straight joint-space leg `a -> b` against the envelope (flange
+/// positions from `fk`). The joint limits
 /// are a box in joint space, so the ends decide them; the workspace box is checked at
 /// samples `step` rad apart (largest joint) with the box shrunk by the largest flange
 /// move between neighbouring samples, so the flange between samples stays inside too.
-pub fn leg_is_safe(guard: &SafetyGuard, a: &Joints, b: &Joints, step: f64) -> bool {
-    if guard.check_pose(a).is_err() || guard.check_pose(b).is_err() {
+pub fn leg_is_safe<K>(
+    envelope: &SafetyEnvelope,
+    fk: &K,
+    a: &Joints,
+    b: &Joints,
+    step: f64,
+) -> bool
+where
+    K: ForwardKinematics + ?Sized,
+{
+    if envelope.check_pose(a, fk).is_err() || envelope.check_pose(b, fk).is_err() {
         return false;
     }
     let largest = joint_distance(a, b);
@@ -172,7 +202,7 @@ pub fn leg_is_safe(guard: &SafetyGuard, a: &Joints, b: &Joints, step: f64) -> bo
         .map(|k| {
             let s = k as f64 / n as f64;
             let q: Joints = std::array::from_fn(|j| a[j] + (b[j] - a[j]) * s);
-            guard.flange_position(&q)
+            fk.flange_position(&q)
         })
         .collect();
     let spacing = points
@@ -184,7 +214,7 @@ pub fn leg_is_safe(guard: &SafetyGuard, a: &Joints, b: &Joints, step: f64) -> bo
             .sqrt()
         })
         .fold(0.0, f64::max);
-    let ws = guard.workspace();
+    let ws = envelope.workspace();
     points
         .iter()
         .all(|p| (0..3).all(|k| p[k] >= ws.min[k] + spacing && p[k] <= ws.max[k] - spacing))
@@ -199,7 +229,7 @@ fn joint_distance(a: &Joints, b: &Joints) -> f64 {
 }
 
 /// The flange pose that puts the camera at `base_from_camera`, solved with the nominal
-/// IK near `seed`, checked against the guard. `Err` says why not.
+/// IK near `seed`, checked against the envelope. `Err` says why not.
 pub fn reach(
     scene: &PlanScene<'_>,
     base_from_camera: &Iso3,
@@ -213,7 +243,7 @@ pub fn reach(
     if (wrist - arm.shoulder_in_base()).norm() > arm.max_shoulder_to_wrist_m() - 1e-3 {
         return Err("out of the arm's reach".to_owned());
     }
-    let margin = scene.guard.position_margin().max(2f64.to_radians());
+    let margin = scene.envelope.position_margin().max(2f64.to_radians());
     let opts = IkOptions {
         tolerance_m: 1e-7,
         tolerance_rad: 1e-7,
@@ -229,8 +259,8 @@ pub fn reach(
         .ik(&wanted, seed, &opts)
         .map_err(|_| "no IK solution inside the joint limits".to_owned())?;
     scene
-        .guard
-        .check_pose(&q)
+        .envelope
+        .check_pose(&q, scene.arm)
         .map_err(|e| format!("outside the safe set: {e}"))?;
     Ok((q, scene.arm.fk(&q)))
 }
@@ -242,7 +272,7 @@ pub fn reach(
 /// one the joint limits block never does, and was the planner's whole cost: with
 /// the IK's defaults (5 starts x 400 iterations) 34 ms per blocked candidate, 0.8 s
 /// per 30-viewpoint plan, against 80 ms now (`cargo bench -p b2b-services --bench
-/// plan`), with 57 of 58 feasible candidates kept.
+/// plan`, on the agent's setup), with 57 of 58 feasible candidates kept.
 pub const PLAN_IK_ITERATIONS: usize = 120;
 /// How still the elbow posture must be before the planner's IK stops (rad per
 /// iteration; the null-space pull moves no flange).
@@ -253,12 +283,11 @@ pub fn plan_viewpoints(
     scene: &PlanScene<'_>,
     start: &Joints,
     cfg: &PlanConfig,
-) -> anyhow::Result<Plan> {
+) -> Result<Plan, RoutineError> {
     cfg.validate()?;
-    anyhow::ensure!(
-        !scene.target_points.is_empty(),
-        "plan: the target has no points"
-    );
+    if scene.target_points.is_empty() {
+        return Err(RoutineError::NoTargetPoints);
+    }
     let centre = target_centre(scene.target_points);
     // Viewing directions lie in a cone about the target's view axis (a board's
     // printed side faces -z of its frame); "up" in the image follows the base's z
@@ -267,7 +296,7 @@ pub fn plan_viewpoints(
     let axis = scene
         .view_axis
         .try_normalize(1e-9)
-        .context("plan: the target's view axis is zero")?;
+        .ok_or(RoutineError::ZeroViewAxis)?;
     // Two directions across the cone; for a board (axis -z) exactly x and y.
     let across_1 = if axis.x.abs() < 0.9 {
         (Vector3::x() - axis * axis.x).normalize()
@@ -362,7 +391,9 @@ pub fn plan_viewpoints(
         remaining.sort_by(|a, b| joint_distance(&at, &a.q).total_cmp(&joint_distance(&at, &b.q)));
         let Some(k) = remaining
             .iter()
-            .position(|v| leg_is_safe(scene.guard, &at, &v.q, cfg.path_step_rad))
+            .position(|v| {
+                leg_is_safe(scene.envelope, scene.arm, &at, &v.q, cfg.path_step_rad)
+            })
         else {
             *dropped
                 .entry("no safe straight joint path from the previous viewpoint".into())
@@ -410,23 +441,18 @@ mod tests {
     use super::*;
     use b2b_robot::{IiwaModel, JointLimits, WorkspaceBox};
 
-    fn setup() -> (Arm, SafetyGuard, CameraModel, Vec<Point3<f64>>) {
+    fn setup() -> (Arm, SafetyEnvelope, CameraModel, Vec<Point3<f64>>) {
         let arm = Arm::new(IiwaModel::Iiwa7R800);
-        let fk_arm = arm.clone();
-        let guard = SafetyGuard::new(
+        let envelope = SafetyEnvelope::new(
             JointLimits::iiwa7(),
             WorkspaceBox::new([0.0, -0.6, 0.15], [0.9, 0.6, 1.2]).unwrap(),
-            move |q: &Joints| {
-                let t = fk_arm.fk(q).translation.vector;
-                [t.x, t.y, t.z]
-            },
         )
         .unwrap()
         .with_position_margin(0.05)
         .unwrap();
         let camera = CameraModel::new(640, 480, [615.0, 615.0, 320.0, 240.0], &[0.0; 5]).unwrap();
         let points = b2b_calib::synth::board_points(9, 6, 0.025);
-        (arm, guard, camera, points)
+        (arm, envelope, camera, points)
     }
 
     fn board() -> Iso3 {
@@ -445,10 +471,10 @@ mod tests {
 
     #[test]
     fn plans_thirty_safe_diverse_viewpoints() {
-        let (arm, guard, camera, points) = setup();
+        let (arm, envelope, camera, points) = setup();
         let scene = PlanScene {
             arm: &arm,
-            guard: &guard,
+            envelope: &envelope,
             camera: &camera,
             base_from_target: board(),
             flange_from_camera: mount(),
@@ -460,8 +486,8 @@ mod tests {
         assert!(plan.viewpoints.len() >= 28, "{plan:?}");
         let mut prev = start;
         for v in &plan.viewpoints {
-            guard.check_pose(&v.q).unwrap();
-            assert!(leg_is_safe(&guard, &prev, &v.q, 0.01));
+            envelope.check_pose(&v.q, &arm).unwrap();
+            assert!(leg_is_safe(&envelope, &arm, &prev, &v.q, 0.01));
             prev = v.q;
             let camera_from_target = (v.base_from_flange * mount()).inverse() * board();
             assert!(all_in_view(&camera, &camera_from_target, &points, 19.0));
@@ -488,11 +514,40 @@ mod tests {
     }
 
     #[test]
+    fn settings_that_cannot_plan_are_named() {
+        let bad = |cfg: PlanConfig| cfg.validate().unwrap_err().to_string();
+        let d = PlanConfig::default();
+        assert!(bad(PlanConfig { count: 2, ..d.clone() }).contains("at least 3"));
+        assert!(
+            bad(PlanConfig {
+                distance_m: [0.6, 0.35],
+                ..d.clone()
+            })
+            .contains("[0.6, 0.35]")
+        );
+        assert!(
+            bad(PlanConfig {
+                max_tilt_rad: f64::NAN,
+                ..d.clone()
+            })
+            .contains("largest tilt")
+        );
+        assert!(
+            bad(PlanConfig {
+                max_roll_rad: 4.0,
+                ..d.clone()
+            })
+            .contains("largest roll")
+        );
+        assert!(bad(PlanConfig { path_step_rad: 0.0, ..d }).contains("path step"));
+    }
+
+    #[test]
     fn an_unreachable_board_gives_an_empty_plan_with_reasons() {
-        let (arm, guard, camera, points) = setup();
+        let (arm, envelope, camera, points) = setup();
         let scene = PlanScene {
             arm: &arm,
-            guard: &guard,
+            envelope: &envelope,
             camera: &camera,
             base_from_target: Iso3::translation(3.0, 0.0, 0.0) * board(),
             flange_from_camera: mount(),

@@ -11,7 +11,6 @@ use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
 use b2b_calib::camera::CameraModel;
 use b2b_calib::refine::BoardCapture;
 use b2b_pipeline::{Observation, RobotObservations};
@@ -19,6 +18,80 @@ use b2b_protocol::RejectedCapture;
 use b2b_protocol::messages::{AgentState, AgentStatus, Capture, Envelope, HandEyeUpdate};
 use nalgebra::{Point2, Point3};
 use serde::{Deserialize, Serialize};
+
+/// What the store could not do, with the cause kept as the source.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("cannot {action} {}", path.display())]
+    Io {
+        action: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: line {line}", path.display())]
+    Line {
+        path: PathBuf,
+        line: usize,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot encode a sample for the journal")]
+    Encode(#[source] serde_json::Error),
+    #[error("no usable captures from robot '{robot}'")]
+    NoCaptures { robot: String },
+    #[error("no usable capture from {robots:?}")]
+    NoneFrom { robots: Vec<String> },
+    #[error(
+        "robot '{robot}' capture {index} reports the target centre at {at:?}, robot \
+         '{first_robot}' capture {first_index} at {first_at:?}: are the agents configured \
+         with the same target?"
+    )]
+    CentresDisagree {
+        robot: String,
+        index: u64,
+        at: [f64; 3],
+        first_robot: String,
+        first_index: u64,
+        first_at: [f64; 3],
+    },
+    #[error("robot '{robot}': camera")]
+    Camera {
+        robot: String,
+        #[source]
+        source: b2b_calib::CalibError,
+    },
+    #[error("robot '{robot}' capture {index}: {field}")]
+    Pose {
+        robot: String,
+        index: u64,
+        field: &'static str,
+        #[source]
+        source: b2b_protocol::ProtocolError,
+    },
+    #[error("robot '{robot}' capture {index}: features")]
+    Features {
+        robot: String,
+        index: u64,
+        #[source]
+        source: b2b_pipeline::PipelineError,
+    },
+    #[error("robot '{robot}': the intrinsics from the published corners")]
+    Intrinsics {
+        robot: String,
+        #[source]
+        source: b2b_pipeline::PipelineError,
+    },
+}
+
+fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> StoreError {
+    let path = path.to_path_buf();
+    move |source| StoreError::Io {
+        action,
+        path,
+        source,
+    }
+}
 
 /// The number of `target` (`None`: the main one, 0) among `further`, the
 /// further targets seen ([`Store::further_targets`]).
@@ -38,6 +111,22 @@ pub enum Sample {
     Capture(Envelope<Capture>),
     Status(Envelope<AgentStatus>),
     HandEye(Envelope<HandEyeUpdate>),
+}
+
+/// A capture's pose as an isometry, or which one of which capture was not one.
+fn pose(
+    robot: &str,
+    index: u64,
+    field: &'static str,
+    pose: &b2b_protocol::Pose,
+) -> Result<nalgebra::Isometry3<f64>, StoreError> {
+    pose.to_isometry(field)
+        .map_err(|source| StoreError::Pose {
+            robot: robot.to_owned(),
+            index,
+            field,
+            source,
+        })
 }
 
 /// The 1-based row a capture index is reported as (an index near `u64::MAX`,
@@ -87,16 +176,15 @@ pub struct Store {
 
 impl Store {
     /// Opens (or creates) the journal in `dir` and replays it.
-    pub fn open(dir: &Path) -> anyhow::Result<Store> {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("cannot create state folder {}", dir.display()))?;
+    pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        std::fs::create_dir_all(dir).map_err(io("create state folder", dir))?;
         let path = dir.join(JOURNAL);
         let mut store = Store {
             journal: OpenOptions::new()
                 .create(true)
                 .append(true)
                 .open(&path)
-                .with_context(|| format!("cannot open {}", path.display()))?,
+                .map_err(io("open", &path))?,
             path: path.clone(),
             captures: BTreeMap::new(),
             conflicts: BTreeMap::new(),
@@ -106,17 +194,20 @@ impl Store {
             skipped_lines: 0,
         };
         // A partial last line (crash mid-write) must not swallow the next sample.
-        let bytes =
-            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        let bytes = std::fs::read(&path).map_err(io("read", &path))?;
         if bytes.last().is_some_and(|b| *b != b'\n') {
             store
                 .journal
                 .write_all(b"\n")
-                .with_context(|| format!("cannot append to {}", path.display()))?;
+                .map_err(io("append to", &path))?;
         }
         let reader = BufReader::new(bytes.as_slice());
         for (i, line) in reader.lines().enumerate() {
-            let line = line.with_context(|| format!("{}: line {}", path.display(), i + 1))?;
+            let line = line.map_err(|source| StoreError::Line {
+                path: path.clone(),
+                line: i + 1,
+                source,
+            })?;
             if line.trim().is_empty() {
                 continue;
             }
@@ -224,27 +315,31 @@ impl Store {
 
     /// Keeps a sample: written and flushed to the journal first (a conflicting
     /// capture too: nothing that arrived is lost), then used.
-    pub fn accept(&mut self, sample: Sample) -> anyhow::Result<Arrival> {
+    pub fn accept(&mut self, sample: Sample) -> Result<Arrival, StoreError> {
         self.accept_from(sample, None)
     }
 
     /// [`Store::accept`], the journal line also naming who sent the sample:
     /// on the secured bus, the certificate that signed it (`"signer"`).
-    pub fn accept_from(&mut self, sample: Sample, signer: Option<&str>) -> anyhow::Result<Arrival> {
+    pub fn accept_from(
+        &mut self,
+        sample: Sample,
+        signer: Option<&str>,
+    ) -> Result<Arrival, StoreError> {
         let arrival = self.classify(&sample);
         if arrival == Arrival::Duplicate {
             return Ok(arrival);
         }
-        let mut value = serde_json::to_value(&sample)?;
+        let mut value = serde_json::to_value(&sample).map_err(StoreError::Encode)?;
         if let (Some(signer), Some(fields)) = (signer, value.as_object_mut()) {
             fields.insert(SIGNER_FIELD.into(), signer.into());
         }
-        let mut line = serde_json::to_vec(&value)?;
+        let mut line = serde_json::to_vec(&value).map_err(StoreError::Encode)?;
         line.push(b'\n');
         self.journal
             .write_all(&line)
             .and_then(|_| self.journal.sync_data())
-            .with_context(|| format!("cannot append to {}", self.path.display()))?;
+            .map_err(io("append to", &self.path))?;
         self.keep(sample, arrival);
         Ok(arrival)
     }
@@ -450,7 +545,7 @@ impl Store {
     /// naming the first disagreement (the agents would be looking at different
     /// targets). Captures from agents that do not report it fall back to the
     /// mean of every distinct corner seen, with a warning.
-    pub fn target_centre(&self, robots: &[&str]) -> anyhow::Result<Point3<f64>> {
+    pub fn target_centre(&self, robots: &[&str]) -> Result<Point3<f64>, StoreError> {
         // With several targets, the first of them any of these robots saw
         // (the main target when seen: the pipeline numbers them so).
         let main_seen = robots.iter().any(|r| {
@@ -476,12 +571,16 @@ impl Store {
                     (None, Some(c)) => reported = Some((robot.to_string(), index, c)),
                     (Some((r0, i0, c0)), Some(c)) => {
                         let d = (0..3).map(|k| (c[k] - c0[k]).powi(2)).sum::<f64>().sqrt();
-                        anyhow::ensure!(
-                            d < 1e-9,
-                            "robot '{robot}' capture {index} reports the target centre at \
-                             {c:?}, robot '{r0}' capture {i0} at {c0:?}: are the agents \
-                             configured with the same target?"
-                        );
+                        if d >= 1e-9 {
+                            return Err(StoreError::CentresDisagree {
+                                robot: robot.to_string(),
+                                index,
+                                at: c,
+                                first_robot: r0.clone(),
+                                first_index: *i0,
+                                first_at: *c0,
+                            });
+                        }
                     }
                 }
             }
@@ -507,7 +606,11 @@ impl Store {
                 }
             }
         }
-        anyhow::ensure!(!seen.is_empty(), "no usable capture from {robots:?}");
+        if seen.is_empty() {
+            return Err(StoreError::NoneFrom {
+                robots: robots.iter().map(|r| r.to_string()).collect(),
+            });
+        }
         tracing::warn!(
             "the agents do not report the target centre; using the mean of the {} distinct corners seen",
             seen.len()
@@ -533,17 +636,20 @@ impl Store {
     /// A robot's captures as the pipeline takes them; with several targets
     /// each observation's target numbered over every robot's (see
     /// [`Store::further_targets`]).
-    pub fn observations(&self, robot: &str) -> anyhow::Result<RobotObservations> {
+    pub fn observations(&self, robot: &str) -> Result<RobotObservations, StoreError> {
         let robots = self.robots();
         let names: Vec<&str> = robots.iter().map(String::as_str).collect();
         let further = self.further_targets(&names);
         let (caps, mut rejected) = self.usable(robot);
-        let (_, first) = caps
-            .first()
-            .with_context(|| format!("no usable captures from robot '{robot}'"))?;
+        let (_, first) = caps.first().ok_or_else(|| StoreError::NoCaptures {
+            robot: robot.to_owned(),
+        })?;
         let c = &first.camera;
         let camera = CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist)
-            .map_err(|e| anyhow::anyhow!("robot '{robot}': camera: {e}"))?;
+            .map_err(|source| StoreError::Camera {
+                robot: robot.to_owned(),
+                source,
+            })?;
         let mut observations = Vec::new();
         for (index, cap) in &caps {
             // A camera without intrinsics: each capture carries the agent's
@@ -580,9 +686,19 @@ impl Store {
                 (Some(o), _) => observations.push(Observation {
                     row: row_of(*index),
                     image: cap.image.clone(),
-                    camera_from_target: o.camera_from_target.to_isometry("T_camera_target")?,
+                    camera_from_target: pose(
+                        robot,
+                        *index,
+                        "T_camera_target",
+                        &o.camera_from_target,
+                    )?,
                     board: BoardCapture {
-                        base_from_flange: cap.base_from_flange.to_isometry("T_base_flange")?,
+                        base_from_flange: pose(
+                            robot,
+                            *index,
+                            "T_base_flange",
+                            &cap.base_from_flange,
+                        )?,
                         target_points: o.target_points.iter().map(|p| Point3::from(*p)).collect(),
                         pixels: o.pixels.iter().map(|p| Point2::from(*p)).collect(),
                         target: target_number(&further, o.target.as_deref()),
@@ -609,7 +725,12 @@ impl Store {
         if !c.estimated {
             return Ok(obs);
         }
-        let obs = b2b_pipeline::estimate_intrinsics_from_observations(obs)?;
+        let obs = b2b_pipeline::estimate_intrinsics_from_observations(obs).map_err(|source| {
+            StoreError::Intrinsics {
+                robot: robot.to_owned(),
+                source,
+            }
+        })?;
         if let Some(e) = &obs.estimated_intrinsics {
             tracing::info!(
                 robot,
@@ -631,9 +752,13 @@ impl Store {
     pub fn rgbd_views(
         &self,
         robot: &str,
-    ) -> anyhow::Result<(Vec<b2b_pipeline::rgbd::RgbdView>, Vec<RejectedCapture>)> {
+    ) -> Result<(Vec<b2b_pipeline::rgbd::RgbdView>, Vec<RejectedCapture>), StoreError> {
         let (caps, mut rejected) = self.usable(robot);
-        anyhow::ensure!(!caps.is_empty(), "no usable captures from robot '{robot}'");
+        if caps.is_empty() {
+            return Err(StoreError::NoCaptures {
+                robot: robot.to_owned(),
+            });
+        }
         let mut views = Vec::new();
         for (index, cap) in caps {
             let row = row_of(index);
@@ -650,10 +775,14 @@ impl Store {
             let view = b2b_pipeline::rgbd::RgbdView::from_feature_set(
                 row,
                 cap.image.clone().unwrap_or_default(),
-                cap.base_from_flange.to_isometry("T_base_flange")?,
+                pose(robot, index, "T_base_flange", &cap.base_from_flange)?,
                 set,
             )
-            .with_context(|| format!("robot '{robot}' capture {index}: features"))?;
+            .map_err(|source| StoreError::Features {
+                robot: robot.to_owned(),
+                index,
+                source,
+            })?;
             views.push(view);
         }
         Ok((views, rejected))

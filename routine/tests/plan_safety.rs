@@ -1,36 +1,28 @@
 //! Safety of the automatic routine's plans: for random boards, mounts, workspace
 //! boxes, joint margins and start postures, no planned viewpoint and no point of any
 //! planned leg leaves the joint limits (with the margin) or the workspace box, and the
-//! re-centring step only ever returns poses the same guard accepts. (Every command the
-//! FRI client then sends passes the guard again: kuka-fri's own property tests.)
+//! re-centring step only ever returns poses the same envelope accepts. (Every command
+//! the FRI client then sends passes the same envelope again, in its session's guard:
+//! kuka-fri's own property tests.)
 
 use b2b_calib::camera::CameraModel;
-use b2b_robot::{Arm, IiwaModel, JointLimits, Joints, WorkspaceBox};
-use b2b_services::plan::{PlanConfig, PlanScene, leg_is_safe, plan_viewpoints, reach, recentre};
-use kuka_fri::SafetyGuard;
+use b2b_robot::{Arm, IiwaModel, JointLimits, Joints, SafetyEnvelope, WorkspaceBox};
+use b2b_routine::plan::{PlanConfig, PlanScene, leg_is_safe, plan_viewpoints, reach, recentre};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 use proptest::prelude::*;
 
-fn guard(model: IiwaModel, min: [f64; 3], max: [f64; 3], margin: f64) -> SafetyGuard {
-    let arm = Arm::new(model);
+fn envelope(model: IiwaModel, min: [f64; 3], max: [f64; 3], margin: f64) -> SafetyEnvelope {
     let limits = match model {
         IiwaModel::Iiwa7R800 => JointLimits::iiwa7(),
         IiwaModel::Iiwa14R820 => JointLimits::iiwa14(),
     };
-    SafetyGuard::new(
-        limits,
-        WorkspaceBox::new(min, max).unwrap(),
-        move |q: &Joints| {
-            let t = arm.fk(q).translation.vector;
-            [t.x, t.y, t.z]
-        },
-    )
-    .unwrap()
-    .with_position_margin(margin)
-    .unwrap()
+    SafetyEnvelope::new(limits, WorkspaceBox::new(min, max).unwrap())
+        .unwrap()
+        .with_position_margin(margin)
+        .unwrap()
 }
 
-/// Joint limits with the margin, checked independently of the guard's code.
+/// Joint limits with the margin, checked independently of the envelope's code.
 fn inside_limits(model: IiwaModel, q: &Joints, margin: f64) -> bool {
     let l = match model {
         IiwaModel::Iiwa7R800 => JointLimits::iiwa7(),
@@ -63,7 +55,7 @@ proptest! {
         let arm = Arm::new(model);
         let min = [box_lo[0], box_lo[1], z_floor];
         let max = box_hi;
-        let g = guard(model, min, max, margin);
+        let g = envelope(model, min, max, margin);
         let camera = CameraModel::new(640, 480, [615.0, 615.0, 320.0, 240.0], &[0.0; 5]).unwrap();
         let points = b2b_calib::synth::board_points(9, 6, 0.025);
         let board = Isometry3::from_parts(
@@ -76,7 +68,7 @@ proptest! {
         );
         let scene = PlanScene {
             arm: &arm,
-            guard: &g,
+            envelope: &g,
             camera: &camera,
             base_from_target: board,
             flange_from_camera: mount,
@@ -87,7 +79,7 @@ proptest! {
         let cfg = PlanConfig { count: 10, ..PlanConfig::default() };
         let plan = plan_viewpoints(&scene, &start, &cfg).unwrap();
         let mut prev = start;
-        let start_ok = g.check_pose(&start).is_ok();
+        let start_ok = g.check_pose(&start, &arm).is_ok();
         for (i, v) in plan.viewpoints.iter().enumerate() {
             prop_assert!(inside_limits(model, &v.q, margin), "viewpoint {i} outside the limits: {:?}", v.q);
             prop_assert!(inside_box(&arm, &v.q, &min, &max), "viewpoint {i} outside the box");
@@ -109,7 +101,7 @@ proptest! {
             let wanted = recentre(&base_from_camera, &Point3::new(0.2, -0.15, 0.4), Some(0.3));
             if let Ok((q, _)) = reach(&scene, &wanted, &v.q) {
                 prop_assert!(inside_limits(model, &q, margin) && inside_box(&arm, &q, &min, &max));
-                if leg_is_safe(&g, &v.q, &q, 0.01) {
+                if leg_is_safe(&g, &arm, &v.q, &q, 0.01) {
                     for k in 0..=100 {
                         let s = k as f64 / 100.0;
                         let p: Joints = std::array::from_fn(|j| v.q[j] + (q[j] - v.q[j]) * s);
