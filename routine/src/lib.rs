@@ -108,9 +108,7 @@ pub enum RoutineError {
         value: f64,
         range: &'static str,
     },
-    #[error(
-        "plan: the distance range [{near}, {far}] m is not a range of distances above 0.05 m"
-    )]
+    #[error("plan: the distance range [{near}, {far}] m is not a range of distances above 0.05 m")]
     PlanDistances { near: f64, far: f64 },
     #[error("plan: the target has no points")]
     NoTargetPoints,

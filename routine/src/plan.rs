@@ -180,13 +180,7 @@ pub fn all_in_view(
 /// are a box in joint space, so the ends decide them; the workspace box is checked at
 /// samples `step` rad apart (largest joint) with the box shrunk by the largest flange
 /// move between neighbouring samples, so the flange between samples stays inside too.
-pub fn leg_is_safe<K>(
-    envelope: &SafetyEnvelope,
-    fk: &K,
-    a: &Joints,
-    b: &Joints,
-    step: f64,
-) -> bool
+pub fn leg_is_safe<K>(envelope: &SafetyEnvelope, fk: &K, a: &Joints, b: &Joints, step: f64) -> bool
 where
     K: ForwardKinematics + ?Sized,
 {
@@ -391,9 +385,7 @@ pub fn plan_viewpoints(
         remaining.sort_by(|a, b| joint_distance(&at, &a.q).total_cmp(&joint_distance(&at, &b.q)));
         let Some(k) = remaining
             .iter()
-            .position(|v| {
-                leg_is_safe(scene.envelope, scene.arm, &at, &v.q, cfg.path_step_rad)
-            })
+            .position(|v| leg_is_safe(scene.envelope, scene.arm, &at, &v.q, cfg.path_step_rad))
         else {
             *dropped
                 .entry("no safe straight joint path from the previous viewpoint".into())
@@ -517,7 +509,13 @@ mod tests {
     fn settings_that_cannot_plan_are_named() {
         let bad = |cfg: PlanConfig| cfg.validate().unwrap_err().to_string();
         let d = PlanConfig::default();
-        assert!(bad(PlanConfig { count: 2, ..d.clone() }).contains("at least 3"));
+        assert!(
+            bad(PlanConfig {
+                count: 2,
+                ..d.clone()
+            })
+            .contains("at least 3")
+        );
         assert!(
             bad(PlanConfig {
                 distance_m: [0.6, 0.35],
@@ -539,7 +537,13 @@ mod tests {
             })
             .contains("largest roll")
         );
-        assert!(bad(PlanConfig { path_step_rad: 0.0, ..d }).contains("path step"));
+        assert!(
+            bad(PlanConfig {
+                path_step_rad: 0.0,
+                ..d
+            })
+            .contains("path step")
+        );
     }
 
     #[test]

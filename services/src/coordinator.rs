@@ -240,7 +240,7 @@ pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationRe
     let observations = ids
         .iter()
         .map(|id| store.observations(id))
-        .collect::<anyhow::Result<Vec<_>>>()?;
+        .collect::<Result<Vec<_>, _>>()?;
     let robots: Vec<&b2b_pipeline::RobotObservations> = observations.iter().collect();
     // The one board centre: the target's, as the agents report it.
     let names: Vec<&str> = ids.iter().map(String::as_str).collect();

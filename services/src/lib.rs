@@ -18,8 +18,8 @@ pub mod watch;
 use std::path::Path;
 
 pub use b2b_bus as bus;
-pub use b2b_store as store;
 pub use b2b_bus::{ACCESS_CONTROL_TARGET, AccessRefusals, LogLimiter, pki, signing, warn_limited};
+pub use b2b_store as store;
 
 use anyhow::Context;
 

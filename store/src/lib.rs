@@ -74,13 +74,13 @@ pub enum StoreError {
         robot: String,
         index: u64,
         #[source]
-        source: b2b_pipeline::PipelineError,
+        source: Box<b2b_pipeline::PipelineError>,
     },
     #[error("robot '{robot}': the intrinsics from the published corners")]
     Intrinsics {
         robot: String,
         #[source]
-        source: b2b_pipeline::PipelineError,
+        source: Box<b2b_pipeline::PipelineError>,
     },
 }
 
@@ -120,13 +120,12 @@ fn pose(
     field: &'static str,
     pose: &b2b_protocol::Pose,
 ) -> Result<nalgebra::Isometry3<f64>, StoreError> {
-    pose.to_isometry(field)
-        .map_err(|source| StoreError::Pose {
-            robot: robot.to_owned(),
-            index,
-            field,
-            source,
-        })
+    pose.to_isometry(field).map_err(|source| StoreError::Pose {
+        robot: robot.to_owned(),
+        index,
+        field,
+        source,
+    })
 }
 
 /// The 1-based row a capture index is reported as (an index near `u64::MAX`,
@@ -728,7 +727,7 @@ impl Store {
         let obs = b2b_pipeline::estimate_intrinsics_from_observations(obs).map_err(|source| {
             StoreError::Intrinsics {
                 robot: robot.to_owned(),
-                source,
+                source: Box::new(source),
             }
         })?;
         if let Some(e) = &obs.estimated_intrinsics {
@@ -781,7 +780,7 @@ impl Store {
             .map_err(|source| StoreError::Features {
                 robot: robot.to_owned(),
                 index,
-                source,
+                source: Box::new(source),
             })?;
             views.push(view);
         }
@@ -1179,7 +1178,9 @@ mod tests {
             s.accept(Sample::Capture(Envelope::new("robot1", seq, sample)))
                 .unwrap();
         }
-        let err = format!("{:#}", s.observations("robot1").unwrap_err());
+        let err = s.observations("robot1").unwrap_err();
+        b2b_errors::assert_cause_once(&err);
+        let err = b2b_errors::chain(&err);
         assert!(
             err.contains("robot1") && err.contains("at least 5"),
             "{err}"
