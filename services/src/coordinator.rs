@@ -276,14 +276,14 @@ fn compute_rgbd(
     opts: &RunOptions,
 ) -> anyhow::Result<CalibrationResult> {
     let start = Instant::now();
-    let mut flange_from_camera = Vec::new();
-    let mut covariance = Vec::new();
-    for (id, obs) in ids.iter().zip(observations) {
-        let he = b2b_pipeline::hand_eye(obs, b2b_pipeline::HandEyeChoice::Refined, &opts.refine)
-            .with_context(|| format!("robot '{id}': hand-eye for the RGB-D method"))?;
-        flange_from_camera.push(he.estimate.flange_from_camera);
-        covariance.push(he.estimate.flange_from_camera_covariance);
-    }
+    // The same hand-eyes, and covariances, as offline.
+    let [he1, he2] =
+        b2b_pipeline::rgbd::rgbd_hand_eyes(observations, &opts.refine).with_context(|| {
+            format!(
+                "robots '{}', '{}': hand-eyes for the RGB-D method",
+                ids[0], ids[1]
+            )
+        })?;
     let hand_eye_ms = start.elapsed().as_secs_f64() * 1e3;
     let (v1, mut rejected) = store.rgbd_views(ids[0])?;
     let (v2, r2) = store.rgbd_views(ids[1])?;
@@ -293,8 +293,8 @@ fn compute_rgbd(
         [&v1, &v2],
         [&observations[0].camera, &observations[1].camera],
         rejected,
-        [flange_from_camera[0], flange_from_camera[1]],
-        Some([covariance[0], covariance[1]]),
+        [he1.0, he2.0],
+        Some([he1.1, he2.1]),
         &opts.rgbd,
     )?;
     run.result.timings_ms.detect = hand_eye_ms;

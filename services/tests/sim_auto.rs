@@ -153,19 +153,6 @@ fn run_auto_carts(
     (dir, result_file, summaries, result)
 }
 
-/// The truth's Mahalanobis² under the covariance the result gives the pair
-/// `a`, `b` (robot ids), with `a_from_b` the true transform.
-fn truth_m2(result: &CalibrationResult, a: &str, b: &str, a_from_b: &Isometry3<f64>) -> f64 {
-    let (est, cov) = b2b_pipeline::pair_transform(result, a, b).unwrap();
-    b2b_calib::refine::mahalanobis2(&b2b_calib::pose::left_difference(&est, a_from_b), &cov)
-        .unwrap()
-}
-
-/// The 99.9% point of chi-square with 6 dof: an honest covariance puts the
-/// truth beyond it one run in a thousand, one too small by 1.5x in sigma one
-/// run in eight.
-const CHI2_6_999: f64 = 22.46;
-
 #[test]
 fn two_carts_run_the_automatic_routine_to_a_verified_result() {
     // Two good captures more than the 24 the result must use: the estimator may
@@ -508,9 +495,9 @@ fn cameras_without_intrinsics_are_calibrated_from_the_routine() {
         .unwrap()
         .base1_from_base2
         .unwrap();
-    let m2 = truth_m2(&result, "robot1", "robot2", &truth);
+    let m2 = common::truth_m2(&result, "robot1", "robot2", &truth);
     eprintln!("no intrinsics given: the truth at Mahalanobis² {m2:.2}");
-    assert!(m2 < CHI2_6_999, "the truth at Mahalanobis² {m2}");
+    assert!(m2 < common::CHI2_6_999, "the truth at Mahalanobis² {m2}");
     let (printout, v) = common::verify(
         &result_file,
         &dataset(name).join("touch_points.csv"),
@@ -588,9 +575,12 @@ fn three_carts_run_the_automatic_routine() {
     // Each pair's covariance against the truth.
     for (a, b) in [(1, 2), (1, 3), (2, 3)] {
         let (ra, rb) = (format!("robot{a}"), format!("robot{b}"));
-        let m2 = truth_m2(&result, &ra, &rb, &(true_base(a).inverse() * true_base(b)));
+        let m2 = common::truth_m2(&result, &ra, &rb, &(true_base(a).inverse() * true_base(b)));
         eprintln!("live, three carts, {ra},{rb}: Mahalanobis² of the truth {m2:.2}");
-        assert!(m2 < CHI2_6_999, "{ra},{rb}: the truth at Mahalanobis² {m2}");
+        assert!(
+            m2 < common::CHI2_6_999,
+            "{ra},{rb}: the truth at Mahalanobis² {m2}"
+        );
     }
     // Measured touch means per pair (README), asserted within 1.5x; offline
     // on the dataset's own 12 captures the same touches give 0.513, 0.541 and

@@ -197,3 +197,21 @@ pub fn sim_setup(
         .unwrap_or_else(|e| panic!("{e:#}"));
     b2b_services::setup::CellSetup::load(&file).unwrap()
 }
+
+/// The truth's Mahalanobis² under the covariance the result gives the pair
+/// `a`, `b` (robot ids), with `a_from_b` the true transform.
+pub fn truth_m2(
+    result: &b2b_protocol::CalibrationResult,
+    a: &str,
+    b: &str,
+    a_from_b: &nalgebra::Isometry3<f64>,
+) -> f64 {
+    let (est, cov) = b2b_pipeline::pair_transform(result, a, b).unwrap();
+    b2b_calib::refine::mahalanobis2(&b2b_calib::pose::left_difference(&est, a_from_b), &cov)
+        .unwrap()
+}
+
+/// The 99.9% point of chi-square with 6 dof: an honest covariance puts the
+/// truth beyond it one run in a thousand, one too small by 1.5x in sigma one
+/// run in eight.
+pub const CHI2_6_999: f64 = 22.46;
