@@ -34,7 +34,7 @@ use b2b_robot::{Arm, IkOptions};
 use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng as _, SeedableRng};
 
-use crate::render::{Renderer, SceneGeometry};
+use crate::render::{RenderSettings, Renderer, SceneGeometry};
 use crate::robot_error::RobotInstance;
 use crate::scene::Scene;
 use crate::sensor::{expose, expose_rgb};
@@ -152,6 +152,66 @@ pub fn generate(scene_file: &Path, seed: u64, out: &Path) -> Result<Summary, Sim
     generate_scene(&scene, scene_file, seed, out, &GenerateOptions::default())
 }
 
+/// One image to render and write: everything drawn for it while planning (its
+/// noise stream positioned after the occluder's draws), so that images can be
+/// rendered in any order, on any thread, and come out the same.
+struct RenderJob {
+    camera_from_world: Iso3,
+    /// The scene with this capture's occluder, when it has one.
+    occluded: Option<SceneGeometry>,
+    settings: RenderSettings,
+    noise: Rng,
+    image: PathBuf,
+    depth: Option<PathBuf>,
+}
+
+/// Renders and writes `jobs` on every core (each image is independent: its own
+/// noise stream, its own files); the first error, if any.
+fn render_jobs(
+    renderer: &Renderer,
+    geometry: &SceneGeometry,
+    scene: &Scene,
+    jobs: Vec<RenderJob>,
+) -> Result<(), SimError> {
+    let one = |mut job: RenderJob| -> Result<(), SimError> {
+        let geo = job.occluded.as_ref().unwrap_or(geometry);
+        let irradiance = renderer.render(&job.camera_from_world, geo, &job.settings);
+        if scene.colour {
+            let image = expose_rgb(&irradiance, &scene.noise, &mut job.noise);
+            image_io::write_rgb(&job.image, &image)?;
+        } else {
+            let image = expose(&irradiance, &scene.noise, &mut job.noise);
+            image_io::write_grey(&job.image, &image)?;
+        }
+        if let (Some(model), Some(file)) = (&scene.depth, &job.depth) {
+            let d = model.measure(&irradiance, &mut job.noise);
+            image_io::write_depth(file, &d)?;
+        }
+        Ok(())
+    };
+    let workers = std::thread::available_parallelism()
+        .map_or(1, std::num::NonZeroUsize::get)
+        .min(jobs.len().max(1));
+    let queue = std::sync::Mutex::new(jobs.into_iter());
+    std::thread::scope(|s| {
+        let handles: Vec<_> = (0..workers)
+            .map(|_| {
+                s.spawn(|| -> Result<(), SimError> {
+                    loop {
+                        let next = queue.lock().unwrap_or_else(|e| e.into_inner()).next();
+                        let Some(job) = next else { return Ok(()) };
+                        one(job)?;
+                    }
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+            .collect::<Result<(), SimError>>()
+    })
+}
+
 /// Generates from an already loaded scene; `scene_file` is used in messages and the
 /// manifest's `source`.
 pub fn generate_scene(
@@ -221,6 +281,7 @@ pub fn generate_scene(
         let mut plan = stream(seed, 2, r, 0);
         let v = &scene.viewpoints;
         let mut captures = vec![];
+        let mut jobs = vec![];
         let mut attempts = 0;
         let max_attempts = v.count * 400;
         let up_in_target = base_from_target.inverse().rotation * Vector3::z();
@@ -295,7 +356,7 @@ pub fn generate_scene(
                     settings.lighting.lux = scene.lux_levels[k % scene.lux_levels.len()];
                 }
                 settings.colour = scene.colour;
-                let mut geo = geometry.clone();
+                let mut geo = SceneGeometry::default();
                 if let Some(occ) = &scene.occluders
                     && noise.random_bool(occ.probability)
                 {
@@ -319,6 +380,7 @@ pub fn generate_scene(
                         Translation3::new(x, y, d),
                         UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle),
                     );
+                    geo = geometry.clone();
                     geo.add_quad(
                         camera_from_world.inverse() * camera_from_occluder,
                         [-length / 2.0, -size / 2.0],
@@ -327,19 +389,14 @@ pub fn generate_scene(
                     );
                 }
                 if render {
-                    let irradiance = renderer.render(&camera_from_world, &geo, &settings);
-                    let file = out.join(&spec.id).join(&rel_image);
-                    if scene.colour {
-                        let image = expose_rgb(&irradiance, &scene.noise, &mut noise);
-                        image_io::write_rgb(&file, &image)?;
-                    } else {
-                        let image = expose(&irradiance, &scene.noise, &mut noise);
-                        image_io::write_grey(&file, &image)?;
-                    }
-                    if let (Some(model), Some(rel)) = (&scene.depth, &rel_depth) {
-                        let d = model.measure(&irradiance, &mut noise);
-                        image_io::write_depth(&out.join(&spec.id).join(rel), &d)?;
-                    }
+                    jobs.push(RenderJob {
+                        camera_from_world,
+                        occluded: (!geo.quads.is_empty()).then_some(geo),
+                        settings,
+                        noise,
+                        image: out.join(&spec.id).join(&rel_image),
+                        depth: rel_depth.as_ref().map(|rel| out.join(&spec.id).join(rel)),
+                    });
                 }
                 captures.push(Capture {
                     row: k + 1,
@@ -351,6 +408,7 @@ pub fn generate_scene(
                 });
             }
         }
+        render_jobs(&renderer, &geometry, scene, jobs)?;
         summary.captures.push(captures.len());
         summary.attempts.push(attempts);
         // What the camera says about itself, which is what a dataset records.

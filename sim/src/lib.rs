@@ -51,7 +51,8 @@
 //! with the release build (`sim generate`), 7 s at 640x480.
 //!
 //! Everything is deterministic for a seed: the random generator is ChaCha8 seeded
-//! explicitly, and rendering is single-threaded.
+//! explicitly, one stream per capture, so `generate` renders a robot's images on
+//! every core and writes the same files whatever the threads' order.
 
 pub mod d435;
 pub mod generate;
