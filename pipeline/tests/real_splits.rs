@@ -270,6 +270,15 @@ fn tabb_denso_halves() {
             "{shape}: {selection:?}"
         );
     }
+    let px: Vec<f64> = ["refined/base", "refined/flange", "refined/two-centres"]
+        .iter()
+        .map(|shape| selection.held_out_px[*shape])
+        .collect();
+    let (lo, hi) = px.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &x| {
+        (lo.min(x), hi.max(x))
+    });
+    // Within 1% of each other (asserted within 1.5x: 1.5%).
+    assert!(hi / lo - 1.0 < 0.015, "the shapes' held-out px {px:?}");
 }
 
 /// ViSP's first four captures against its last four.

@@ -7,6 +7,9 @@
 //! exit with status 3 (`--until-alarm`). The same through the scene's depth
 //! features (`agent watch --observe features` on the textured RGB-D scene),
 //! where each cart is watched against the scene rather than the target.
+//! These are smoke tests of the wiring: what the watch decides (a 0.1° turn
+//! alarms, still carts do not, how many observations it takes) is tested in
+//! process on a virtual clock (`calib/src/drift.rs`, `watch/`).
 
 mod common;
 
@@ -87,17 +90,6 @@ fn a_cart_shifted_by_1_mm_alarms_and_still_carts_do_not() {
     assert!((0.5e-3..1.5e-3).contains(&a.shift_m), "{a:?}");
 }
 
-/// A cart turned by 0.1° about its vertical axis (the board, about 0.5 m from
-/// its base, moves by about 0.9 mm and turns by 0.1°).
-#[test]
-fn a_cart_turned_by_0_1_deg_alarms_and_still_carts_do_not() {
-    let a = bumped(&dataset(), "target", &["--rpy-deg", "0,0,0.1"]);
-    assert!(
-        (0.05f64.to_radians()..0.15f64.to_radians()).contains(&a.turn_rad),
-        "{a:?}"
-    );
-}
-
 /// Where no target is left in view: each agent publishes the scene's features
 /// lifted with its depth frame (`--observe features`, the board's detection
 /// switched off), and each cart is watched against the scene itself.
@@ -106,16 +98,6 @@ fn a_cart_shifted_by_1_mm_alarms_through_the_scene_features() {
     let a = bumped(&rgbd_dataset(), "features", &["--t-mm", "1,0,0"]);
     // The scene's centre, seen from robot 2's moved base, moves by about as much.
     assert!((0.5e-3..1.5e-3).contains(&a.shift_m), "{a:?}");
-}
-
-/// The same, the cart turned by 0.1° about its vertical axis.
-#[test]
-fn a_cart_turned_by_0_1_deg_alarms_through_the_scene_features() {
-    let a = bumped(&rgbd_dataset(), "features", &["--rpy-deg", "0,0,0.1"]);
-    assert!(
-        (0.05f64.to_radians()..0.15f64.to_radians()).contains(&a.turn_rad),
-        "{a:?}"
-    );
 }
 
 /// One cell at a time: four carts rendering at once on a 2-core machine
