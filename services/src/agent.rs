@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::bus::{self, Bus};
-use anyhow::Context;
+use crate::{Result, ServiceError};
 use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
 use b2b_pipeline::rgbd::{RgbdOptions, capture_view};
@@ -39,24 +39,21 @@ pub struct Sequence {
 
 impl Sequence {
     /// Continues from the number stored in `dir` for agent `robot` (or starts at 1).
-    pub fn open(dir: &Path, robot: &str) -> anyhow::Result<Sequence> {
+    pub fn open(dir: &Path, robot: &str) -> Result<Sequence> {
         Sequence::open_named(dir, &format!("agent-{robot}"))
     }
 
     /// Continues from the number stored in `dir/{name}.seq` (or starts at 1).
-    pub fn open_named(dir: &Path, name: &str) -> anyhow::Result<Sequence> {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("cannot create state folder {}", dir.display()))?;
+    pub fn open_named(dir: &Path, name: &str) -> Result<Sequence> {
+        std::fs::create_dir_all(dir).map_err(ServiceError::io("create state folder", dir))?;
         let path = dir.join(format!("{name}.seq"));
         let next = match std::fs::read_to_string(&path) {
-            Ok(text) => {
-                text.trim()
-                    .parse::<u64>()
-                    .with_context(|| format!("{}: not a sequence number", path.display()))?
-                    + 1
-            }
+            Ok(text) => match text.trim().parse::<u64>() {
+                Ok(n) => n + 1,
+                Err(source) => return Err(ServiceError::NotASequenceNumber { path, source }),
+            },
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => 1,
-            Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+            Err(e) => return Err(ServiceError::io("read", &path)(e)),
         };
         Ok(Sequence {
             path,
@@ -65,17 +62,17 @@ impl Sequence {
     }
 
     /// The next number, stored before it is used.
-    pub fn take(&self) -> anyhow::Result<u64> {
+    pub fn take(&self) -> Result<u64> {
         let mut next = self
             .next
             .lock()
-            .map_err(|_| anyhow::anyhow!("sequence lock poisoned"))?;
+            .map_err(|_| ServiceError::Poisoned { what: "sequence" })?;
         let n = *next;
         *next += 1;
         let tmp = self.path.with_extension("seq.tmp");
         std::fs::write(&tmp, n.to_string())
             .and_then(|_| std::fs::rename(&tmp, &self.path))
-            .with_context(|| format!("cannot write {}", self.path.display()))?;
+            .map_err(ServiceError::io("write", &self.path))?;
         Ok(n)
     }
 }
@@ -162,11 +159,7 @@ pub trait CaptureSource {
     /// How many captures to expect, when known (for the progress bar).
     fn expected(&self) -> Option<u64>;
     /// The next capture, or `None` when the source is done.
-    fn next(
-        &mut self,
-        progress: &Progress,
-        stop: &AtomicBool,
-    ) -> anyhow::Result<Option<SourceCapture>>;
+    fn next(&mut self, progress: &Progress, stop: &AtomicBool) -> Result<Option<SourceCapture>>;
     /// A closing line (timings, plan coverage), printed when the run ends.
     fn summary(&self) -> Option<String> {
         None
@@ -190,12 +183,15 @@ pub struct ReplaySource {
 
 impl ReplaySource {
     /// Opens `dataset` for `robot`.
-    pub fn open(dataset: &Path, robot: &str) -> anyhow::Result<Self> {
+    pub fn open(dataset: &Path, robot: &str) -> Result<Self> {
         let ds = b2b_pipeline::load_dataset(dataset)?;
         let setup = RobotSetup::from_dataset(&ds, robot)?;
         let data = ds
             .robot(robot)
-            .with_context(|| format!("robot '{robot}' is not in {}", dataset.display()))?
+            .ok_or_else(|| ServiceError::RobotNotInDataset {
+                robot: robot.to_owned(),
+                dataset: dataset.to_owned(),
+            })?
             .clone();
         Ok(ReplaySource {
             ds,
@@ -244,11 +240,7 @@ impl CaptureSource for ReplaySource {
         Some(self.data.captures.len() as u64)
     }
 
-    fn next(
-        &mut self,
-        _progress: &Progress,
-        _stop: &AtomicBool,
-    ) -> anyhow::Result<Option<SourceCapture>> {
+    fn next(&mut self, _progress: &Progress, _stop: &AtomicBool) -> Result<Option<SourceCapture>> {
         let Some(cap) = self.data.captures.get(self.next) else {
             return Ok(None);
         };
@@ -320,7 +312,7 @@ pub fn run_replay(
     dataset: &Path,
     features: Option<b2b_vision::features::FeatureKind>,
     stop: &AtomicBool,
-) -> anyhow::Result<Option<CalibrationResult>> {
+) -> Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let mut source = ReplaySource::open(dataset, &opts.robot)?;
     if let Some(kind) = features {
@@ -336,7 +328,7 @@ pub fn run_agent(
     opts: &AgentOptions,
     source: &mut dyn CaptureSource,
     stop: &AtomicBool,
-) -> anyhow::Result<Option<CalibrationResult>> {
+) -> Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let bus = Arc::new(bus::ZenohBus::open(
         opts.zenoh.as_deref(),
@@ -351,7 +343,7 @@ pub fn run_agent_on(
     opts: &AgentOptions,
     source: &mut dyn CaptureSource,
     stop: &AtomicBool,
-) -> anyhow::Result<Option<CalibrationResult>> {
+) -> Result<Option<CalibrationResult>> {
     b2b_protocol::messages::validate_cart_id(&opts.robot)?;
     let link = AgentLink::open(bus, &opts.robot, &opts.state_dir, source.describe())?;
     let results = link.status.bus.subscribe(&result_key())?;
@@ -396,7 +388,7 @@ pub fn run_agent_on(
         }
         Err(e) => {
             s.state = AgentState::Failed;
-            s.message = format!("{e:#}");
+            s.message = error_chain(e);
         }
     })?;
     link.status.publish()?;
@@ -413,20 +405,18 @@ pub fn run_agent_on(
     );
     match answer {
         Answer::Result(r) => Ok(Some(*r)),
-        Answer::Failed(reason) => Err(anyhow::anyhow!("the coordinator's solve failed: {reason}")),
+        Answer::Failed(reason) => Err(ServiceError::SolveFailed { reason }),
         Answer::None if stop.load(Ordering::SeqCst) => Ok(None),
         Answer::None => match link.status.session()? {
             Some(_) => Ok(None),
-            None => Err(anyhow::anyhow!(
-                "no result from the coordinator within {} s, and no coordinator heard (a \
-                 running one announces its session twice a second): {}",
-                opts.wait_result.as_secs(),
-                link.status.bus.unreached().unwrap_or_else(|| {
+            None => Err(ServiceError::NoCoordinator {
+                waited_s: opts.wait_result.as_secs(),
+                why: link.status.bus.unreached().unwrap_or_else(|| {
                     "connected, but no session announced: is the coordinator running (or \
                      another program in its place: is another coordinator running?)"
                         .into()
-                })
-            )),
+                }),
+            }),
         },
     }
 }
@@ -445,20 +435,20 @@ struct StatusLink {
 }
 
 impl StatusLink {
-    fn update(&self, change: impl FnOnce(&mut AgentStatus)) -> anyhow::Result<()> {
+    fn update(&self, change: impl FnOnce(&mut AgentStatus)) -> Result<()> {
         let mut s = self
             .status
             .lock()
-            .map_err(|_| anyhow::anyhow!("status lock poisoned"))?;
+            .map_err(|_| ServiceError::Poisoned { what: "status" })?;
         change(&mut s);
         Ok(())
     }
 
-    fn publish(&self) -> anyhow::Result<()> {
+    fn publish(&self) -> Result<()> {
         let body = self
             .status
             .lock()
-            .map_err(|_| anyhow::anyhow!("status lock poisoned"))?
+            .map_err(|_| ServiceError::Poisoned { what: "status" })?
             .clone();
         self.send("status", body)
     }
@@ -469,26 +459,23 @@ impl StatusLink {
         &self,
         topic: &str,
         body: T,
-    ) -> anyhow::Result<()> {
+    ) -> Result<()> {
         let key = agent_key(&self.robot, topic);
         Ok(bus::publish(&*self.bus, &key, &self.envelope(body)?)?)
     }
 
     /// `body` with the next sequence number, in the session echoed now.
-    fn envelope<T: b2b_protocol::messages::Validate>(
-        &self,
-        body: T,
-    ) -> anyhow::Result<Envelope<T>> {
+    fn envelope<T: b2b_protocol::messages::Validate>(&self, body: T) -> Result<Envelope<T>> {
         Ok(Envelope::new(&self.robot, self.seq.take()?, body)
             .in_session(self.session()?.as_deref()))
     }
 
     /// The session echoed now.
-    fn session(&self) -> anyhow::Result<Option<String>> {
+    fn session(&self) -> Result<Option<String>> {
         Ok(self
             .session
             .lock()
-            .map_err(|_| anyhow::anyhow!("session lock poisoned"))?
+            .map_err(|_| ServiceError::Poisoned { what: "session" })?
             .clone())
     }
 
@@ -570,7 +557,7 @@ impl AgentLink {
         robot: &str,
         state_dir: &Path,
         describe: String,
-    ) -> anyhow::Result<AgentLink> {
+    ) -> Result<AgentLink> {
         let seq = Arc::new(Sequence::open(state_dir, robot)?);
         let history: Arc<Mutex<Vec<Envelope<Capture>>>> = Arc::new(Mutex::new(Vec::new()));
         let session: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
@@ -621,7 +608,7 @@ impl AgentLink {
                 while !done.load(Ordering::SeqCst) {
                     status.hear_session();
                     if let Err(e) = status.publish() {
-                        tracing::warn!("status heartbeat: {e:#}");
+                        tracing::warn!("status heartbeat: {}", error_chain(&e));
                     }
                     std::thread::sleep(HEARTBEAT);
                 }
@@ -637,13 +624,13 @@ impl AgentLink {
     }
 
     /// Publishes a capture and keeps it for the history queryable.
-    fn publish_capture(&self, msg: Capture) -> anyhow::Result<()> {
+    fn publish_capture(&self, msg: Capture) -> Result<()> {
         let key = agent_key(&self.status.robot, "capture");
         let envelope = self.status.envelope(msg)?;
         let bytes = bus::encode(&key, &envelope)?;
         self.history
             .lock()
-            .map_err(|_| anyhow::anyhow!("history lock poisoned"))?
+            .map_err(|_| ServiceError::Poisoned { what: "history" })?
             .push(envelope);
         self.status.bus.put(&key, bytes)?;
         Ok(())
@@ -721,7 +708,7 @@ pub fn run_watch(
     period: Duration,
     observe: crate::live::WatchObserve,
     stop: &AtomicBool,
-) -> anyhow::Result<u64> {
+) -> Result<u64> {
     b2b_protocol::messages::validate_cart_id(robot)?;
     let seq = Sequence::open(state_dir, robot)?;
     let key = agent_key(robot, WATCH_TOPIC);
@@ -764,10 +751,12 @@ impl CaptureLoop {
         source: &mut dyn CaptureSource,
         stop: &AtomicBool,
         bar: &indicatif::ProgressBar,
-    ) -> anyhow::Result<()> {
+    ) -> Result<()> {
         loop {
             if stop.load(Ordering::SeqCst) {
-                anyhow::bail!("interrupted after {} captures", self.published);
+                return Err(ServiceError::InterruptedAfter {
+                    captures: self.published,
+                });
             }
             let started = Instant::now();
             let Some(cap) = source.next(&self.progress, stop)? else {
@@ -795,7 +784,7 @@ impl CaptureLoop {
         opts: &AgentOptions,
         cap: &SourceCapture,
         bar: &indicatif::ProgressBar,
-    ) -> anyhow::Result<Option<b2b_calib::camera::CameraModel>> {
+    ) -> Result<Option<b2b_calib::camera::CameraModel>> {
         let robot = &opts.robot;
         let obs = self.observations.get_or_insert_with(|| RobotObservations {
             robot: robot.clone(),

@@ -23,7 +23,6 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{
@@ -35,6 +34,7 @@ use b2b_protocol::messages::{
 use crate::agent::Sequence;
 use crate::bus::{self, Bus};
 use crate::store::{Arrival, Sample, Store};
+use crate::{Result, ServiceError};
 
 /// Options of `coordinator run`.
 #[derive(Debug, Clone)]
@@ -95,7 +95,7 @@ fn handle(
     bytes: &[u8],
     signer: Option<&str>,
     session: &str,
-) -> anyhow::Result<Option<Heard>> {
+) -> Result<Option<Heard>> {
     let Some((_, topic)) = bus::parse_agent_key(key) else {
         return Ok(None);
     };
@@ -169,7 +169,7 @@ fn catch_up(
     counters: &mut Counters,
     selector: &str,
     session: &str,
-) -> anyhow::Result<std::collections::BTreeSet<String>> {
+) -> Result<std::collections::BTreeSet<String>> {
     let mut served: std::collections::BTreeMap<String, std::collections::BTreeSet<u64>> =
         Default::default();
     let mut news = std::collections::BTreeSet::new();
@@ -215,24 +215,18 @@ pub const FRUITLESS_QUERIES: u32 = 3;
 pub const STATUS_ONLY_GRACE: Duration = Duration::from_secs(5);
 
 /// Computes the result from what the store holds.
-pub fn compute(store: &Store, opts: &RunOptions) -> anyhow::Result<CalibrationResult> {
+pub fn compute(store: &Store, opts: &RunOptions) -> Result<CalibrationResult> {
     let ids = match &opts.order {
         Some(order) => order.clone(),
         None => store.robots(),
     };
-    anyhow::ensure!(
-        ids.len() >= 2,
-        "need two robots, heard from {}: {:?}",
-        ids.len(),
-        ids
-    );
+    if ids.len() < 2 {
+        return Err(ServiceError::TooFewRobots { robots: ids });
+    }
     if opts.method == b2b_pipeline::B2bMethod::Rgbd {
-        anyhow::ensure!(
-            ids.len() == 2,
-            "the rgbd method pairs two robots' images, heard from {}: {:?} (give --robots a,b)",
-            ids.len(),
-            ids
-        );
+        if ids.len() != 2 {
+            return Err(ServiceError::RgbdNeedsTwoRobots { robots: ids });
+        }
         let o1 = store.observations(&ids[0])?;
         let o2 = store.observations(&ids[1])?;
         return compute_rgbd(store, [&ids[0], &ids[1]], [&o1, &o2], opts);
@@ -274,15 +268,15 @@ fn compute_rgbd(
     ids: [&str; 2],
     observations: [&b2b_pipeline::RobotObservations; 2],
     opts: &RunOptions,
-) -> anyhow::Result<CalibrationResult> {
+) -> Result<CalibrationResult> {
     let start = Instant::now();
     // The same hand-eyes, and covariances, as offline.
     let [he1, he2] =
-        b2b_pipeline::rgbd::rgbd_hand_eyes(observations, &opts.refine).with_context(|| {
-            format!(
-                "robots '{}', '{}': hand-eyes for the RGB-D method",
-                ids[0], ids[1]
-            )
+        b2b_pipeline::rgbd::rgbd_hand_eyes(observations, &opts.refine).map_err(|source| {
+            ServiceError::RgbdHandEyes {
+                robots: ids.map(str::to_owned),
+                source: Box::new(source),
+            }
         })?;
     let hand_eye_ms = start.elapsed().as_secs_f64() * 1e3;
     let (v1, mut rejected) = store.rgbd_views(ids[0])?;
@@ -304,7 +298,7 @@ fn compute_rgbd(
 
 /// Runs on a zenoh session (see [`bus::config`]) until every agent has
 /// finished (or `stop` is set), then computes, publishes and returns the result.
-pub fn run(opts: &RunOptions, stop: &AtomicBool) -> anyhow::Result<(CalibrationResult, Counters)> {
+pub fn run(opts: &RunOptions, stop: &AtomicBool) -> Result<(CalibrationResult, Counters)> {
     let bus = bus::ZenohBus::open(opts.zenoh.as_deref(), bus::Role::Coordinator)?;
     let out = run_on(&bus, opts, stop);
     // Give the result, or the failure, a moment to leave before the session
@@ -321,7 +315,7 @@ pub fn run_on(
     bus: &dyn Bus,
     opts: &RunOptions,
     stop: &AtomicBool,
-) -> anyhow::Result<(CalibrationResult, Counters)> {
+) -> Result<(CalibrationResult, Counters)> {
     let mut store = Store::open(&opts.state_dir)?;
     if store.skipped_lines > 0 {
         eprintln!(
@@ -372,13 +366,13 @@ pub const SESSION_PERIOD: Duration = Duration::from_millis(500);
 /// `state_dir/session`, or a new random one written there. A coordinator
 /// restarted on the same folder resumes the same run, so its agents' echo
 /// still holds.
-pub fn session_of(state_dir: &std::path::Path) -> anyhow::Result<String> {
+pub fn session_of(state_dir: &std::path::Path) -> Result<String> {
     let path = state_dir.join("session");
     match std::fs::read_to_string(&path) {
         Ok(text) => {
             let id = text.trim().to_owned();
             b2b_protocol::messages::validate_session_id(&id)
-                .with_context(|| format!("{}", path.display()))?;
+                .map_err(|e| ServiceError::from(e).in_file(&path))?;
             Ok(id)
         }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -386,10 +380,10 @@ pub fn session_of(state_dir: &std::path::Path) -> anyhow::Result<String> {
             let tmp = path.with_extension("tmp");
             std::fs::write(&tmp, &id)
                 .and_then(|()| std::fs::rename(&tmp, &path))
-                .with_context(|| format!("cannot write {}", path.display()))?;
+                .map_err(ServiceError::io("write", &path))?;
             Ok(id)
         }
-        Err(e) => Err(e).with_context(|| format!("cannot read {}", path.display())),
+        Err(e) => Err(ServiceError::io("read", &path)(e)),
     }
 }
 
@@ -403,7 +397,7 @@ fn collect_and_solve(
     inbox: &dyn bus::Inbox,
     seq: &Sequence,
     session: &str,
-) -> anyhow::Result<(CalibrationResult, Counters)> {
+) -> Result<(CalibrationResult, Counters)> {
     let mut counters = Counters::default();
     catch_up(
         bus,
@@ -487,7 +481,7 @@ fn collect_and_solve(
             // The agents wait for this run's answer: they hear the failure
             // and stop waiting.
             let failure = RunFailure {
-                reason: failure_reason(&format!("{e:#}")),
+                reason: failure_reason(&b2b_pipeline::error_chain(&e)),
             };
             let sent = seq.take().and_then(|n| {
                 bus::publish(
@@ -495,10 +489,13 @@ fn collect_and_solve(
                     &failure_key(),
                     &Envelope::new(COORDINATOR, n, failure).in_session(Some(session)),
                 )
-                .map_err(anyhow::Error::from)
+                .map_err(ServiceError::from)
             });
             if let Err(p) = sent {
-                tracing::warn!("could not tell the agents the solve failed: {p:#}");
+                tracing::warn!(
+                    "could not tell the agents the solve failed: {}",
+                    b2b_pipeline::error_chain(&p)
+                );
             }
             return Err(e);
         }
@@ -666,56 +663,49 @@ impl Gathering {
 pub fn rgbd_with_hand_eye_files(
     ds: &b2b_dataset::Dataset,
     files: &[PathBuf],
-) -> anyhow::Result<CalibrationResult> {
+) -> Result<CalibrationResult> {
     let ids: Vec<String> = ds.manifest.robots.iter().map(|r| r.id.clone()).collect();
-    anyhow::ensure!(
-        ids.len() == 2,
-        "base-to-base needs two robots, the dataset lists {}",
-        ids.len()
-    );
+    if ids.len() != 2 {
+        return Err(ServiceError::DatasetNotTwoRobots { listed: ids.len() });
+    }
     let mut found: Vec<Option<(nalgebra::Isometry3<f64>, nalgebra::Matrix6<f64>)>> =
         vec![None, None];
     for path in files {
         let he: b2b_protocol::HandEyeResult = crate::read_json(path)?;
-        anyhow::ensure!(
-            he.format == b2b_protocol::HANDEYE_FORMAT,
-            "{}: format '{}', expected '{}'",
-            path.display(),
-            he.format,
-            b2b_protocol::HANDEYE_FORMAT
-        );
-        let k = ids.iter().position(|id| *id == he.robot).with_context(|| {
-            format!(
-                "{}: robot '{}' is not in the dataset ({})",
-                path.display(),
-                he.robot,
-                ids.join(", ")
-            )
-        })?;
-        anyhow::ensure!(
-            found[k].is_none(),
-            "{}: a second hand-eye for robot '{}'",
-            path.display(),
-            he.robot
-        );
+        if he.format != b2b_protocol::HANDEYE_FORMAT {
+            return Err(ServiceError::WrongFormat {
+                path: path.clone(),
+                found: he.format,
+                expected: b2b_protocol::HANDEYE_FORMAT,
+            });
+        }
+        let Some(k) = ids.iter().position(|id| *id == he.robot) else {
+            return Err(ServiceError::HandEyeRobotNotInDataset {
+                path: path.clone(),
+                robot: he.robot,
+                robots: ids,
+            });
+        };
+        if found[k].is_some() {
+            return Err(ServiceError::SecondHandEye {
+                path: path.clone(),
+                robot: he.robot,
+            });
+        }
         let x = he
             .flange_from_camera
             .to_isometry("T_flange_camera")
-            .with_context(|| path.display().to_string())?;
+            .map_err(|e| ServiceError::from(e).in_file(path))?;
         let cov = nalgebra::Matrix6::from_fn(|i, j| he.covariance[i][j]);
-        anyhow::ensure!(
-            cov.iter().all(|v| v.is_finite()),
-            "{}: covariance has a non-finite entry",
-            path.display()
-        );
+        if !cov.iter().all(|v| v.is_finite()) {
+            return Err(ServiceError::NonFiniteCovariance { path: path.clone() });
+        }
         found[k] = Some((x, cov));
     }
     let (Some(a), Some(b)) = (found[0], found[1]) else {
-        anyhow::bail!(
-            "--hand-eye: need one HANDEYE.json for each of {} and {}",
-            ids[0],
-            ids[1]
-        );
+        return Err(ServiceError::MissingHandEye {
+            robots: [ids[0].clone(), ids[1].clone()],
+        });
     };
     let run = b2b_pipeline::rgbd::rgbd_base_to_base_with_hand_eyes(
         ds,

@@ -53,8 +53,12 @@ pub fn record_after_writing(
 
 /// `coordinator history`: the listing (of one robot, or all), as text or JSON
 /// on stdout; a reader that stops early (`| head`) is not an error.
-pub fn print_listing(state_dir: &Path, robot: Option<&str>, json: bool) -> anyhow::Result<()> {
-    use anyhow::Context as _;
+pub fn print_listing(
+    state_dir: &Path,
+    robot: Option<&str>,
+    json: bool,
+) -> Result<(), crate::ServiceError> {
+    use crate::ServiceError;
     use std::io::Write as _;
 
     if let Some(r) = &robot {
@@ -66,7 +70,7 @@ pub fn print_listing(state_dir: &Path, robot: Option<&str>, json: bool) -> anyho
         Ok(None) => Ok(Listing::empty(&db, robot)),
         Err(e) => Err(e),
     }
-    .context("cannot read the history")?;
+    .map_err(|e| ServiceError::HistoryRead(Box::new(e)))?;
     let mut stdout = std::io::BufWriter::new(std::io::stdout().lock());
     let written = if json {
         serde_json::to_writer_pretty(&mut stdout, &listing)
@@ -79,6 +83,6 @@ pub fn print_listing(state_dir: &Path, robot: Option<&str>, json: bool) -> anyho
     match written {
         // `history | head`: the reader has what it wanted.
         Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
-        other => other.context("cannot write the history to stdout"),
+        other => other.map_err(ServiceError::HistoryWrite),
     }
 }

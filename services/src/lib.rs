@@ -7,6 +7,7 @@
 
 pub mod agent;
 pub mod coordinator;
+pub mod error;
 pub mod history;
 pub mod live;
 pub mod outputs;
@@ -20,8 +21,7 @@ use std::path::Path;
 pub use b2b_bus as bus;
 pub use b2b_bus::{ACCESS_CONTROL_TARGET, AccessRefusals, LogLimiter, pki, signing, warn_limited};
 pub use b2b_store as store;
-
-use anyhow::Context;
+pub use error::{Result, ServiceError};
 
 /// Logs to stderr, `RUST_LOG` overriding the default level (warn); every
 /// message zenoh's access control refuses is logged too ([`AccessRefusals`]).
@@ -51,10 +51,9 @@ pub fn init_logging() {
 pub const DEFAULT_LOG_FILTER: &str = "warn,zenoh::net::runtime::orchestrator=error";
 
 /// Writes a value as pretty JSON, creating the parent folder.
-pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> anyhow::Result<()> {
+pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("cannot create {}", parent.display()))?;
+        std::fs::create_dir_all(parent).map_err(ServiceError::io("create", parent))?;
     }
     let text = serde_json::to_string_pretty(value)?;
     outputs::write_together(&[(path.to_owned(), (text + "\n").into_bytes())])
@@ -63,12 +62,13 @@ pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> anyhow::Result
 /// Reads a JSON file into a value, naming the file in errors.
 /// A named pipe, a device or a directory is refused without opening it (a pipe
 /// would block), and so is a file over `b2b_dataset::MAX_TEXT_FILE_BYTES`.
-pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<T> {
+pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
     b2b_dataset::check_input_file(path, "expected a JSON file")?;
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    serde_json::from_str(&text)
-        .with_context(|| format!("{}: not a valid file of this kind", path.display()))
+    let text = std::fs::read_to_string(path).map_err(ServiceError::io("read", path))?;
+    serde_json::from_str(&text).map_err(|source| ServiceError::NotValidFile {
+        path: path.to_owned(),
+        source,
+    })
 }
 
 /// The robot pose noise every estimating command takes. `--robot-sigma-*` is
@@ -228,22 +228,43 @@ impl std::fmt::Display for ExitStatus {
 impl std::error::Error for ExitStatus {}
 
 /// Runs a command body, printing a one-line reason and exiting non-zero on error
-/// (shared/interfaces.md: never a panic, never a backtrace for bad input).
-pub fn run_main(body: impl FnOnce() -> anyhow::Result<()>) -> std::process::ExitCode {
-    match body() {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) if e.downcast_ref::<ExitStatus>().is_some() => {
-            let code = e.downcast_ref::<ExitStatus>().map_or(1, |s| s.code);
-            eprintln!("{e}");
-            std::process::ExitCode::from(code)
+/// (shared/interfaces.md: never a panic, never a backtrace for bad input). The
+/// binaries' error type is named at the call (`run_main::<E>`): any error that
+/// shows itself as a standard error, printed with its whole chain, "a: b: c",
+/// so each cause appears once. An [`ExitStatus`] in the chain ends the command
+/// with its code and message instead.
+pub fn run_main<E>(body: impl FnOnce() -> std::result::Result<(), E>) -> std::process::ExitCode
+where
+    E: AsRef<dyn std::error::Error + Send + Sync + 'static>,
+{
+    let Err(e) = body() else {
+        return std::process::ExitCode::SUCCESS;
+    };
+    let e: &(dyn std::error::Error + Send + Sync + 'static) = e.as_ref();
+    match exit_status(e) {
+        Some(status) => {
+            eprintln!("{status}");
+            std::process::ExitCode::from(status.code)
         }
-        Err(e) => {
-            // `{:#}` prints the chain "a: b: c"; every library message leaves its
-            // source out, so each cause appears once.
-            eprintln!("error: {e:#}");
+        None => {
+            eprintln!("error: {}", b2b_pipeline::error_chain(e));
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// The [`ExitStatus`] an error is, or carries in its chain (a [`ServiceError`]
+/// wrapping another keeps it boxed).
+fn exit_status<'a>(e: &'a (dyn std::error::Error + 'static)) -> Option<&'a ExitStatus> {
+    std::iter::successors(Some(e), |e| e.source()).find_map(|e| {
+        let service = e
+            .downcast_ref::<ServiceError>()
+            .or(e.downcast_ref::<Box<ServiceError>>().map(|b| &**b));
+        match service {
+            Some(ServiceError::Exit(status)) => Some(status),
+            _ => e.downcast_ref::<ExitStatus>(),
+        }
+    })
 }
 
 /// Every argument of `cmd` and its visible subcommands that has no help text, as

@@ -13,7 +13,6 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use anyhow::Context;
 use b2b_calib::camera::CameraModel;
 use b2b_pipeline::Observation;
 use b2b_protocol::RejectedCapture;
@@ -22,6 +21,7 @@ use kuka_fri::{FriClient, SafetyGuard, SessionState};
 use nalgebra::{Isometry3, Point2, Point3};
 
 use crate::agent::{CaptureSource, Progress, SourceCapture};
+use crate::{Result, ServiceError};
 use b2b_routine::plan::{
     Plan, PlanConfig, PlanScene, Viewpoint, leg_is_safe, plan_viewpoints, reach, recentre,
 };
@@ -49,11 +49,11 @@ pub struct LiveFrame {
 /// Frames from the camera process.
 pub trait FrameSource {
     /// The first frame whose exposure started at or after `after_ns`.
-    fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame>;
+    fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> Result<LiveFrame>;
     /// The newest frame whose exposure started at or after `after_ns`: the
     /// queue is drained, so a watch looks at what the camera sees now, not at
     /// what it saw while the agent was busy.
-    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame>;
+    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> Result<LiveFrame>;
     /// Frames that arrived but were never looked at (the queue overflowed while the
     /// arm moved; the camera never waits for the agent).
     fn dropped(&self) -> u64;
@@ -276,9 +276,11 @@ impl LiveSource {
         arm: Arm,
         guard: SafetyGuard,
         target: LiveTarget,
-    ) -> anyhow::Result<Self> {
+    ) -> Result<Self> {
         fri.wait_for_joints(Duration::from_secs(15))
-            .context("no joint state from the FRI controller")?;
+            .map_err(|e| ServiceError::NoJointState {
+                source: Some(Box::new(e)),
+            })?;
         let routine = Routine::new(cfg.mode.clone(), cfg.plan.count);
         Ok(LiveSource {
             cfg,
@@ -298,16 +300,16 @@ impl LiveSource {
     }
 
     /// The measured joints now.
-    fn measured(&self) -> anyhow::Result<Joints> {
+    fn measured(&self) -> Result<Joints> {
         Ok(self
             .fri
             .latest()
-            .context("no joint state from the FRI controller")?
+            .ok_or(ServiceError::NoJointState { source: None })?
             .q)
     }
 
     /// Waits until the arm is still; returns the host time it was found still.
-    fn wait_still(&self) -> anyhow::Result<u64> {
+    fn wait_still(&self) -> Result<u64> {
         let deadline = Instant::now() + self.cfg.settle_timeout;
         loop {
             if self
@@ -316,17 +318,17 @@ impl LiveSource {
             {
                 return Ok(now_ns());
             }
-            anyhow::ensure!(
-                Instant::now() < deadline,
-                "the arm did not come to rest within {:?}",
-                self.cfg.settle_timeout
-            );
+            if Instant::now() >= deadline {
+                return Err(ServiceError::NotAtRest {
+                    waited: self.cfg.settle_timeout,
+                });
+            }
             std::thread::sleep(Duration::from_millis(10));
         }
     }
 
     /// Still arm, then a frame exposed after it, then the arm checked still again.
-    fn still_frame(&mut self) -> anyhow::Result<(LiveFrame, Joints, f64)> {
+    fn still_frame(&mut self) -> Result<(LiveFrame, Joints, f64)> {
         let still_at = self.wait_still()?;
         let waited = Instant::now();
         let frame = self.frames.frame_after(still_at, self.cfg.frame_timeout)?;
@@ -336,31 +338,32 @@ impl LiveSource {
 
     /// `frame` with the joints it was taken at, the arm checked still after it
     /// (and the agent's estimate of the camera when the frame carries none).
-    fn still_through(&self, mut frame: LiveFrame) -> anyhow::Result<(LiveFrame, Joints, f64)> {
+    fn still_through(&self, mut frame: LiveFrame) -> Result<(LiveFrame, Joints, f64)> {
         if !frame.intrinsics_given
             && let Some(c) = &self.estimated_camera
         {
-            anyhow::ensure!(
-                (c.width, c.height) == (frame.camera.width, frame.camera.height),
-                "frame {} is {}x{}, the camera was {}x{} when its intrinsics were estimated",
-                frame.number,
-                frame.camera.width,
-                frame.camera.height,
-                c.width,
-                c.height
-            );
+            let size = (frame.camera.width, frame.camera.height);
+            if (c.width, c.height) != size {
+                return Err(ServiceError::FrameSizeChanged {
+                    frame: frame.number,
+                    size,
+                    estimated: (c.width, c.height),
+                });
+            }
             frame.camera = c.clone();
         }
-        anyhow::ensure!(
-            self.fri
-                .is_still(self.cfg.still_window, self.cfg.still_tol_rad),
-            "the arm moved during the exposure of frame {}",
-            frame.number
-        );
+        if !self
+            .fri
+            .is_still(self.cfg.still_window, self.cfg.still_tol_rad)
+        {
+            return Err(ServiceError::MovedDuringExposure {
+                frame: frame.number,
+            });
+        }
         let js = self
             .fri
             .latest()
-            .context("no joint state from the FRI controller")?;
+            .ok_or(ServiceError::NoJointState { source: None })?;
         let t = js.timestamp.as_duration().as_secs_f64();
         Ok((frame, js.q, t))
     }
@@ -368,7 +371,7 @@ impl LiveSource {
     /// The watch's frame: the arm still (else it waits for rest and takes frames
     /// exposed after it), the newest frame exposed at or after `after_ns`, and
     /// the arm checked still again.
-    fn watch_frame(&mut self, after_ns: u64) -> anyhow::Result<(LiveFrame, Joints, f64)> {
+    fn watch_frame(&mut self, after_ns: u64) -> Result<(LiveFrame, Joints, f64)> {
         let after_ns = if self
             .fri
             .is_still(self.cfg.still_window, self.cfg.still_tol_rad)
@@ -381,14 +384,14 @@ impl LiveSource {
         self.still_through(frame)
     }
 
-    fn move_to(&mut self, q: Joints) -> anyhow::Result<()> {
+    fn move_to(&mut self, q: Joints) -> Result<()> {
         let started = Instant::now();
         if self.fri.state() != SessionState::CommandingActive {
             self.fri
                 .wait_for_state(SessionState::CommandingActive, Duration::from_secs(10))
-                .context("the FRI session is not commanding (is the robot application's overlay running?)")?;
+                .map_err(|e| ServiceError::NotCommanding(Box::new(e)))?;
         }
-        let r = self.fri.move_to(q).map_err(anyhow::Error::from);
+        let r = self.fri.move_to(q).map_err(ServiceError::from);
         self.timings.motion_ms += ms(started.elapsed());
         r
     }
@@ -397,7 +400,7 @@ impl LiveSource {
     /// `phase`. With `first_view`, the board estimate comes from detecting the
     /// board where the arm stands now; otherwise from what the routine has seen,
     /// or the configuration.
-    fn make_plan(&mut self, count: usize, first_view: bool, phase: f64) -> anyhow::Result<()> {
+    fn make_plan(&mut self, count: usize, first_view: bool, phase: f64) -> Result<()> {
         let (frame, q, _) = self.still_frame()?;
         self.camera = Some(frame.camera.clone());
         self.camera_estimated = !frame.intrinsics_given;
@@ -449,11 +452,11 @@ impl LiveSource {
         };
         let plan = plan_viewpoints(&scene, &q, &cfg)?;
         self.timings.plan_ms += ms(started.elapsed());
-        anyhow::ensure!(
-            !plan.viewpoints.is_empty(),
-            "no viewpoint of the board is reachable safely: {:?}",
-            plan.dropped
-        );
+        if plan.viewpoints.is_empty() {
+            return Err(ServiceError::NoSafeViewpoint {
+                dropped: plan.dropped,
+            });
+        }
         self.routine.planned(plan.viewpoints.len(), board);
         self.plan = Some(plan);
         Ok(())
@@ -474,14 +477,14 @@ impl LiveSource {
         period: Duration,
         observe: WatchObserve,
         stop: &AtomicBool,
-        deliver: &mut dyn FnMut(SourceCapture) -> anyhow::Result<()>,
-    ) -> anyhow::Result<()> {
+        deliver: &mut dyn FnMut(SourceCapture) -> Result<()>,
+    ) -> Result<()> {
         let v = self
             .plan_only()?
             .viewpoints
             .first()
             .cloned()
-            .context("the plan has no viewpoint to watch from")?;
+            .ok_or(ServiceError::NoWatchViewpoint)?;
         self.move_to(v.q)?;
         let progress = Progress::default();
         let mut row = 0usize;
@@ -524,7 +527,11 @@ impl LiveSource {
                     deliver(capture)?;
                 }
                 Err(e) => {
-                    tracing::warn!("{}: watch: {e:#}", self.cfg.robot);
+                    tracing::warn!(
+                        "{}: watch: {}",
+                        self.cfg.robot,
+                        b2b_pipeline::error_chain(&e)
+                    );
                     // Whatever went wrong (the arm pushed, the camera late),
                     // only frames exposed from now on count.
                     after_ns = after_ns.max(now_ns());
@@ -551,7 +558,7 @@ impl LiveSource {
         std::mem::replace(&mut self.cfg.features, features)
     }
 
-    pub fn plan_only(&mut self) -> anyhow::Result<&Plan> {
+    pub fn plan_only(&mut self) -> Result<&Plan> {
         if let Step::Plan {
             count,
             first_view,
@@ -560,7 +567,7 @@ impl LiveSource {
         {
             self.make_plan(count, first_view, phase)?;
         }
-        self.plan.as_ref().context("no plan")
+        self.plan.as_ref().ok_or(ServiceError::NoPlan)
     }
 
     fn reject(&self, row: usize, reason: String) -> RejectedCapture {
@@ -591,7 +598,7 @@ impl LiveSource {
         v: &Viewpoint,
         progress: &Progress,
         stop: &AtomicBool,
-    ) -> anyhow::Result<SourceCapture> {
+    ) -> Result<SourceCapture> {
         let row = self.captured as usize + 1;
         let status = status(progress);
         let (mut visit, mut action) = self.routine.visit(v.q);
@@ -600,11 +607,13 @@ impl LiveSource {
         // never for the frames before a re-centring).
         let mut last: Option<(SourceCapture, Joints, LiveFrame)> = None;
         loop {
-            anyhow::ensure!(!stop.load(Ordering::SeqCst), "interrupted");
+            if stop.load(Ordering::SeqCst) {
+                return Err(ServiceError::Interrupted);
+            }
             let event = match action {
                 VisitAction::MoveTo(q) => match self.move_to(q) {
                     Ok(()) => VisitEvent::Moved,
-                    Err(e) => VisitEvent::MoveFailed(format!("{e:#}")),
+                    Err(e) => VisitEvent::MoveFailed(b2b_pipeline::error_chain(&e)),
                 },
                 VisitAction::Capture => match self.still_frame() {
                     Ok((frame, q, controller_t)) => {
@@ -612,11 +621,13 @@ impl LiveSource {
                         last = Some((capture, q, frame));
                         VisitEvent::Seen(view)
                     }
-                    Err(e) => VisitEvent::NoFrame(format!("{e:#}")),
+                    Err(e) => VisitEvent::NoFrame(b2b_pipeline::error_chain(&e)),
                 },
                 VisitAction::Recentre { centre_in_camera } => {
                     let started = Instant::now();
-                    let (capture, q, _) = last.as_ref().context("re-centring without a frame")?;
+                    let (capture, q, _) = last.as_ref().ok_or(ServiceError::NoFrame {
+                        step: "re-centring",
+                    })?;
                     let result = self.recentre(
                         &capture.base_from_flange,
                         &capture.camera,
@@ -627,12 +638,14 @@ impl LiveSource {
                     VisitEvent::Recentred(result)
                 }
                 VisitAction::Deliver => {
-                    let (mut capture, _, frame) = last.context("delivering without a frame")?;
+                    let (mut capture, _, frame) =
+                        last.ok_or(ServiceError::NoFrame { step: "delivering" })?;
                     capture.features = self.features(&frame);
                     return Ok(capture);
                 }
                 VisitAction::Reject(reason) => {
-                    let (mut capture, _, frame) = last.context("rejecting without a frame")?;
+                    let (mut capture, _, frame) =
+                        last.ok_or(ServiceError::NoFrame { step: "rejecting" })?;
                     capture.features = self.features(&frame);
                     capture.observed = Err(self.reject(row, reason));
                     return Ok(capture);
@@ -643,7 +656,7 @@ impl LiveSource {
                         image: None,
                         base_from_flange: self.arm.fk(&self.measured()?),
                         controller_time_s: None,
-                        camera: self.camera.clone().context("no camera intrinsics yet")?,
+                        camera: self.camera.clone().ok_or(ServiceError::NoCamera)?,
                         intrinsics_estimated: self.camera_estimated,
                         observed: Err(self.reject(row, reason)),
                         pixels: None,
@@ -739,7 +752,13 @@ impl LiveSource {
         let (options, (depth, unit)) = self.cfg.features.as_ref().zip(frame.depth.as_ref())?;
         let started = Instant::now();
         let features = frame_features(frame, depth, *unit, options)
-            .map_err(|e| tracing::warn!("frame {}: no features: {e:#}", frame.number))
+            .map_err(|e| {
+                tracing::warn!(
+                    "frame {}: no features: {}",
+                    frame.number,
+                    b2b_pipeline::error_chain(&e)
+                )
+            })
             .ok();
         self.timings.detect_ms += ms(started.elapsed());
         features
@@ -813,11 +832,7 @@ impl CaptureSource for LiveSource {
         Some(self.cfg.plan.count as u64)
     }
 
-    fn next(
-        &mut self,
-        progress: &Progress,
-        stop: &AtomicBool,
-    ) -> anyhow::Result<Option<SourceCapture>> {
+    fn next(&mut self, progress: &Progress, stop: &AtomicBool) -> Result<Option<SourceCapture>> {
         let v = loop {
             match self.routine.next_step(&status(progress)) {
                 Step::Plan {
@@ -831,7 +846,7 @@ impl CaptureSource for LiveSource {
                         .as_ref()
                         .and_then(|p| p.viewpoints.get(k))
                         .cloned()
-                        .context("the routine asked for a viewpoint the plan does not have")?;
+                        .ok_or(ServiceError::UnplannedViewpoint { index: k })?;
                 }
                 Step::Stop(_) => return Ok(None),
             }
@@ -881,7 +896,7 @@ fn frame_features(
     depth: &b2b_vision::features::DepthImage,
     unit_m: f64,
     options: &b2b_pipeline::rgbd::RgbdOptions,
-) -> anyhow::Result<b2b_protocol::messages::FeatureSet> {
+) -> Result<b2b_protocol::messages::FeatureSet> {
     let gray =
         b2b_vision::GrayImage::from_raw(frame.camera.width, frame.camera.height, &frame.grey)?;
     let (features, points) =
@@ -907,7 +922,7 @@ impl std::fmt::Debug for IceoryxFrames {
 
 impl IceoryxFrames {
     /// Subscribes to `robot`'s colour stream under `prefix`.
-    pub fn new(prefix: &str, robot: &str) -> anyhow::Result<Self> {
+    pub fn new(prefix: &str, robot: &str) -> Result<Self> {
         let name = b2b_frames::service_name_in(prefix, robot, b2b_frames::Stream::Colour);
         Ok(IceoryxFrames {
             subscriber: b2b_frames::FrameSubscriber::new(&name)?,
@@ -918,7 +933,7 @@ impl IceoryxFrames {
 
     /// Also subscribes to `robot`'s depth stream: each frame then comes with the
     /// depth frame of the same number.
-    pub fn with_depth(mut self, prefix: &str, robot: &str) -> anyhow::Result<Self> {
+    pub fn with_depth(mut self, prefix: &str, robot: &str) -> Result<Self> {
         let name = b2b_frames::service_name_in(prefix, robot, b2b_frames::Stream::Depth);
         self.depth = Some(b2b_frames::FrameSubscriber::new(&name)?);
         Ok(self)
@@ -934,7 +949,7 @@ impl IceoryxFrames {
         &mut self,
         colour: &LiveFrame,
         timeout: Duration,
-    ) -> anyhow::Result<Option<(b2b_vision::features::DepthImage, f64)>> {
+    ) -> Result<Option<(b2b_vision::features::DepthImage, f64)>> {
         let number = colour.number;
         let Some(sub) = self.depth.as_mut() else {
             return Ok(None);
@@ -961,23 +976,24 @@ impl IceoryxFrames {
                 );
                 return Ok(None);
             }
-            anyhow::ensure!(
-                h.stream_kind()? == b2b_frames::StreamKind::Z16,
-                "the depth service carries {} frames",
-                h.stream_kind()?.name()
-            );
-            anyhow::ensure!(
-                h.depth_unit_m > 0.0 && h.depth_unit_m.is_finite(),
-                "depth frame {number} has no depth unit"
-            );
-            anyhow::ensure!(
-                (h.width, h.height) == (colour.camera.width, colour.camera.height),
-                "depth frame {number} is {}x{} but its colour frame is {}x{}: depth must be aligned to colour",
-                h.width,
-                h.height,
-                colour.camera.width,
-                colour.camera.height
-            );
+            let kind = h.stream_kind()?;
+            if kind != b2b_frames::StreamKind::Z16 {
+                return Err(ServiceError::WrongStream {
+                    service: "depth",
+                    kind,
+                });
+            }
+            if !(h.depth_unit_m > 0.0 && h.depth_unit_m.is_finite()) {
+                return Err(ServiceError::NoDepthUnit { frame: number });
+            }
+            let colour_size = (colour.camera.width, colour.camera.height);
+            if (h.width, h.height) != colour_size {
+                return Err(ServiceError::DepthNotAligned {
+                    frame: number,
+                    depth: (h.width, h.height),
+                    colour: colour_size,
+                });
+            }
             let gap = h.timestamp_ns.abs_diff(colour.timestamp_ns);
             if gap > DEPTH_PAIR_WINDOW_NS {
                 tracing::warn!(
@@ -989,7 +1005,9 @@ impl IceoryxFrames {
             }
             let mut data = Vec::with_capacity(h.width as usize * h.height as usize);
             for y in 0..h.height {
-                let row = frame.row(y).context("short depth frame")?;
+                let row = frame
+                    .row(y)
+                    .ok_or(ServiceError::ShortFrame { depth: true })?;
                 data.extend(
                     row.chunks_exact(2)
                         .map(|b| u16::from_le_bytes([b[0], b[1]])),
@@ -1014,19 +1032,19 @@ impl IceoryxFrames {
 pub const DEPTH_PAIR_WINDOW_NS: u64 = 20_000_000;
 
 /// Converts a received frame to grey (RGB is averaged with the BT.601 weights).
-fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
+fn to_live(frame: &b2b_frames::Frame) -> Result<LiveFrame> {
     let h = *frame.header();
     let kind = h.stream_kind()?;
     // A camera without intrinsics publishes zero focal lengths; anything else
     // that is not a positive focal length is a broken header.
     let intrinsics_given = !(h.fx == 0.0 && h.fy == 0.0);
-    anyhow::ensure!(
-        !intrinsics_given || (h.fx > 0.0 && h.fy > 0.0),
-        "frame {} carries focal lengths {} and {}: neither positive nor both zero (none given)",
-        h.frame_number,
-        h.fx,
-        h.fy
-    );
+    if intrinsics_given && !(h.fx > 0.0 && h.fy > 0.0) {
+        return Err(ServiceError::BadFocalLengths {
+            frame: h.frame_number,
+            fx: h.fx,
+            fy: h.fy,
+        });
+    }
     let camera = if intrinsics_given {
         CameraModel::new(h.width, h.height, [h.fx, h.fy, h.cx, h.cy], &h.dist)?
     } else {
@@ -1034,14 +1052,21 @@ fn to_live(frame: &b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
     };
     let mut grey = Vec::with_capacity(h.width as usize * h.height as usize);
     for y in 0..h.height {
-        let row = frame.row(y).context("short frame")?;
+        let row = frame
+            .row(y)
+            .ok_or(ServiceError::ShortFrame { depth: false })?;
         match kind {
             b2b_frames::StreamKind::Gray8 => grey.extend_from_slice(row),
             b2b_frames::StreamKind::Rgb8 => grey.extend(row.chunks_exact(3).map(|p| {
                 (0.299 * f64::from(p[0]) + 0.587 * f64::from(p[1]) + 0.114 * f64::from(p[2]))
                     .round() as u8
             })),
-            other => anyhow::bail!("the colour service carries {} frames", other.name()),
+            kind => {
+                return Err(ServiceError::WrongStream {
+                    service: "colour",
+                    kind,
+                });
+            }
         }
     }
     Ok(LiveFrame {
@@ -1058,7 +1083,7 @@ impl IceoryxFrames {
     /// A received colour frame as a `LiveFrame` (its shared-memory sample
     /// released at once), with the depth frame of the same number when there is
     /// a depth stream.
-    fn live_frame(&mut self, frame: b2b_frames::Frame) -> anyhow::Result<LiveFrame> {
+    fn live_frame(&mut self, frame: b2b_frames::Frame) -> Result<LiveFrame> {
         let mut live = to_live(&frame)?;
         drop(frame);
         live.depth = self.depth_of(&live, Duration::from_secs(2))?;
@@ -1067,15 +1092,16 @@ impl IceoryxFrames {
 }
 
 impl FrameSource for IceoryxFrames {
-    fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame> {
+    fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> Result<LiveFrame> {
         let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
-            anyhow::ensure!(
-                !left.is_zero(),
-                "no camera frame exposed after the arm came to rest within {timeout:?} ({})",
-                self.subscriber.service_name()
-            );
+            if left.is_zero() {
+                return Err(ServiceError::NoFrameInTime {
+                    waited: timeout,
+                    service: self.subscriber.service_name().to_owned(),
+                });
+            }
             if let Some(frame) = self
                 .subscriber
                 .wait_next(left.min(Duration::from_millis(200)))?
@@ -1086,7 +1112,7 @@ impl FrameSource for IceoryxFrames {
         }
     }
 
-    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> anyhow::Result<LiveFrame> {
+    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> Result<LiveFrame> {
         if let Some(frame) = self.subscriber.latest()?
             && frame.header().timestamp_ns >= after_ns
         {

@@ -6,8 +6,9 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
 use b2b_protocol::CalibrationResult;
+
+use crate::{Result, ServiceError};
 
 /// The files written beside `RESULT.json`.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -60,7 +61,7 @@ fn opencv_matrix(name: &str, rows: usize, cols: usize, data: &[f64]) -> String {
 
 /// An OpenCV FileStorage YAML with the 4x4 `T_base1_base2` and the 6x6 covariance
 /// (`cv::FileStorage(path, READ)["T_base1_base2"]`).
-pub fn opencv_yaml(r: &CalibrationResult) -> anyhow::Result<String> {
+pub fn opencv_yaml(r: &CalibrationResult) -> Result<String> {
     let iso = r.base1_from_base2.to_isometry("T_base1_base2")?;
     let m = iso.to_homogeneous();
     let rows: Vec<f64> = (0..4)
@@ -108,7 +109,7 @@ pub fn ros2_launch(r: &CalibrationResult) -> String {
 /// A URDF holding `base1_from_base2` as the fixed joint `base1_to_base2` from link
 /// `base1` to link `base2` (copy the joint into the cell's URDF). `rpy` is URDF's:
 /// roll about x, pitch about y, yaw about z, fixed axes (`R = Rz Ry Rx`).
-pub fn urdf(r: &CalibrationResult) -> anyhow::Result<String> {
+pub fn urdf(r: &CalibrationResult) -> Result<String> {
     let iso = r.base1_from_base2.to_isometry("T_base1_base2")?;
     let t = iso.translation.vector;
     let (roll, pitch, yaw) = iso.rotation.euler_angles();
@@ -130,7 +131,7 @@ pub fn urdf(r: &CalibrationResult) -> anyhow::Result<String> {
 
 /// Writes RESULT.json and its siblings ([`Siblings`]) together
 /// ([`write_together`]): all are replaced, or none.
-pub fn write_result(path: &Path, r: &CalibrationResult) -> anyhow::Result<()> {
+pub fn write_result(path: &Path, r: &CalibrationResult) -> Result<()> {
     let files = sibling_paths(path);
     let json = serde_json::to_string_pretty(r)? + "\n";
     write_together(&[
@@ -179,28 +180,18 @@ fn beside(path: &Path, suffix: &str) -> PathBuf {
 /// failed write (a full disk) removes the temporary files and leaves every
 /// previous file as it was; a rename failing half-way puts back the files
 /// already replaced (kept as hard links until the end).
-pub fn write_together(files: &[(PathBuf, Vec<u8>)]) -> anyhow::Result<()> {
+pub fn write_together(files: &[(PathBuf, Vec<u8>)]) -> Result<()> {
     use std::io::Write;
-    let names = || {
-        files
-            .iter()
-            .map(|(p, _)| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", ")
-    };
     let paths: Vec<&Path> = files.iter().map(|(p, _)| p.as_path()).collect();
-    check_destinations(&paths).with_context(|| {
-        format!(
-            "nothing was written (the previous files, if any, are left as they were: {})",
-            names()
-        )
+    check_destinations(&paths).map_err(|e| ServiceError::NothingWritten {
+        files: files.iter().map(|(p, _)| p.clone()).collect(),
+        source: Box::new(e),
     })?;
     let mut leftovers = Leftovers::default();
     let mut temps = Vec::with_capacity(files.len());
     for (path, bytes) in files {
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-            std::fs::create_dir_all(parent)
-                .with_context(|| format!("cannot create {}", parent.display()))?;
+            std::fs::create_dir_all(parent).map_err(ServiceError::io("create", parent))?;
         }
         let tmp = beside(path, "tmp");
         let _ = std::fs::remove_file(&tmp);
@@ -213,12 +204,10 @@ pub fn write_together(files: &[(PathBuf, Vec<u8>)]) -> anyhow::Result<()> {
                 f.write_all(bytes)?;
                 f.sync_all()
             });
-        written.with_context(|| {
-            format!(
-                "cannot write {} (through {}); nothing was replaced",
-                path.display(),
-                tmp.display()
-            )
+        written.map_err(|source| ServiceError::WriteThrough {
+            path: path.clone(),
+            temporary: tmp.clone(),
+            source,
         })?;
         temps.push(tmp);
     }
@@ -231,7 +220,10 @@ pub fn write_together(files: &[(PathBuf, Vec<u8>)]) -> anyhow::Result<()> {
             leftovers.0.push(b.clone());
             std::fs::hard_link(path, &b)
                 .or_else(|_| std::fs::copy(path, &b).map(|_| ()))
-                .with_context(|| format!("cannot keep {} while replacing it", path.display()))?;
+                .map_err(|source| ServiceError::KeepPrevious {
+                    path: path.clone(),
+                    source,
+                })?;
             Some(b)
         } else {
             None
@@ -253,10 +245,10 @@ pub fn write_together(files: &[(PathBuf, Vec<u8>)]) -> anyhow::Result<()> {
                     }
                 }
             }
-            return Err(anyhow::Error::new(e).context(format!(
-                "cannot replace {}; nothing was replaced",
-                path.display()
-            )));
+            return Err(ServiceError::Replace {
+                path: path.clone(),
+                source: e,
+            });
         }
         leftovers.keep(tmp);
     }
@@ -266,15 +258,15 @@ pub fn write_together(files: &[(PathBuf, Vec<u8>)]) -> anyhow::Result<()> {
 /// Refuses destinations that could not be replaced by a file: a directory, a
 /// named pipe, a device. Called by [`write_together`], and by the commands
 /// before any work so that a long run does not end in a refusal.
-pub fn check_destinations(paths: &[&Path]) -> anyhow::Result<()> {
+pub fn check_destinations(paths: &[&Path]) -> Result<()> {
     for path in paths {
         if let Ok(meta) = std::fs::metadata(path)
             && let Some(kind) = b2b_dataset::not_a_regular_file(&meta)
         {
-            anyhow::bail!(
-                "{} is {kind}: it cannot be replaced by the output file; remove it or choose another path",
-                path.display()
-            );
+            return Err(ServiceError::NotReplaceable {
+                path: path.to_path_buf(),
+                kind,
+            });
         }
     }
     Ok(())
@@ -327,26 +319,27 @@ pub fn refuse_output_over_input(
     path: &Path,
     dataset: Option<&Path>,
     inputs: &[&Path],
-) -> anyhow::Result<()> {
+) -> Result<()> {
     let out = resolved(path);
     if let Some(dir) = dataset {
         let real = resolved(dir);
-        anyhow::ensure!(
-            !out.starts_with(&real),
-            "{flag} {} is inside the dataset folder {} (resolved: {}): a result is never \
-             written into the data it comes from; choose a path outside the dataset",
-            path.display(),
-            dir.display(),
-            out.display()
-        );
+        if out.starts_with(&real) {
+            return Err(ServiceError::OutputInsideDataset {
+                flag: flag.to_owned(),
+                path: path.to_owned(),
+                dataset: dir.to_owned(),
+                resolved: out,
+            });
+        }
     }
     for input in inputs {
-        anyhow::ensure!(
-            out != resolved(input),
-            "{flag} {} is the input {}: it would be overwritten; choose another path",
-            path.display(),
-            input.display()
-        );
+        if out == resolved(input) {
+            return Err(ServiceError::OutputIsInput {
+                flag: flag.to_owned(),
+                path: path.to_owned(),
+                input: input.to_path_buf(),
+            });
+        }
     }
     Ok(())
 }
@@ -678,9 +671,10 @@ pub fn print_agent_result(
     robot: &str,
     result: Option<CalibrationResult>,
     wait_result_s: u64,
-) -> anyhow::Result<()> {
-    let r = result
-        .with_context(|| format!("no result from the coordinator within {wait_result_s} s"))?;
+) -> Result<()> {
+    let r = result.ok_or(ServiceError::NoResult {
+        waited_s: wait_result_s,
+    })?;
     let t = r.base1_from_base2.t;
     println!(
         "{robot}: coordinator result T_base1_base2 t = [{:.6}, {:.6}, {:.6}] m",
@@ -697,7 +691,7 @@ pub fn report_inputs(
     hand_eye: &[PathBuf],
     touch_points: Option<&Path>,
     tip_sigma_m: f64,
-) -> anyhow::Result<b2b_report::ReportInputs> {
+) -> Result<b2b_report::ReportInputs> {
     let mut inputs = b2b_report::ReportInputs::from_files(result, verify)?;
     for f in hand_eye {
         inputs.add_hand_eye_file(f)?;
@@ -709,7 +703,7 @@ pub fn report_inputs(
                 b2b_pipeline::PipelineError::Touches { .. } => tp,
                 _ => result,
             };
-            anyhow::Error::new(e).context(file.display().to_string())
+            ServiceError::from(e).in_file(file)
         })?;
         inputs.touches = touches
             .iter()
@@ -797,7 +791,8 @@ mod tests {
             (dir.join("blocker/c.urdf"), b"new c".to_vec()),
         ])
         .unwrap_err();
-        assert!(format!("{e:#}").contains("blocker"), "{e:#}");
+        let text = b2b_pipeline::error_chain(&e);
+        assert!(text.contains("blocker"), "{text}");
         assert_eq!(listing(dir), before);
     }
 
@@ -815,7 +810,7 @@ mod tests {
             (dir.join("c.urdf"), b"new c".to_vec()),
         ])
         .unwrap_err();
-        let text = format!("{e:#}");
+        let text = b2b_pipeline::error_chain(&e);
         assert!(
             text.contains("c.urdf is a directory") && text.contains("nothing was written"),
             "{text}"

@@ -1,12 +1,13 @@
 //! rerun recordings of the commands: where they go (`--rerun-save`,
 //! `--rerun-connect`), what each command logs, and closing them.
 
-use anyhow::Context;
 use b2b_calib::Iso3;
 use b2b_calib::metrics::TouchMetrics;
 use b2b_dataset::Dataset;
 use b2b_pipeline::{RobotObservations, error_chain};
 use b2b_protocol::{CalibrationResult, HandEyeResult};
+
+use crate::{Result, ServiceError};
 
 /// Where a command's rerun recording goes: `--rerun-save FILE.rrd` and/or
 /// `--rerun-connect ADDR` (a running viewer); neither: no recording.
@@ -23,12 +24,20 @@ pub struct RerunArgs {
 
 impl RerunArgs {
     /// The recorder these flags ask for.
-    pub fn recorder(&self, app_id: &str) -> anyhow::Result<b2b_viz::Recorder> {
+    pub fn recorder(&self, app_id: &str) -> Result<b2b_viz::Recorder> {
         Ok(match (&self.rerun_save, &self.rerun_connect) {
-            (Some(path), _) => b2b_viz::Recorder::save(app_id, path)
-                .with_context(|| format!("cannot write the recording {}", path.display()))?,
-            (None, Some(addr)) => b2b_viz::Recorder::connect(app_id, addr)
-                .with_context(|| format!("cannot stream to the rerun viewer at {addr}"))?,
+            (Some(path), _) => b2b_viz::Recorder::save(app_id, path).map_err(|source| {
+                ServiceError::RecordingSave {
+                    path: path.clone(),
+                    source: Box::new(source),
+                }
+            })?,
+            (None, Some(addr)) => b2b_viz::Recorder::connect(app_id, addr).map_err(|source| {
+                ServiceError::RecordingConnect {
+                    addr: addr.clone(),
+                    source: Box::new(source),
+                }
+            })?,
             (None, None) => b2b_viz::Recorder::disabled(),
         })
     }
@@ -193,7 +202,7 @@ pub fn log_hand_eye_run(
     ds: &Dataset,
     obs: &RobotObservations,
     result: &HandEyeResult,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     let x = result.flange_from_camera.to_isometry("T_flange_camera")?;
     log_robot_captures(rec, ds, b2b_viz::Base::One, obs, Some(&x));
     Ok(())
@@ -207,7 +216,7 @@ pub fn log_verification(
     a_from_b: &Iso3,
     touches: &[b2b_dataset::TouchPair],
     metrics: &TouchMetrics,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     if !rec.is_enabled() {
         return Ok(());
     }

@@ -10,7 +10,6 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use anyhow::Context;
 use b2b_dataset::Target;
 use b2b_pipeline::TargetSpec;
 use b2b_protocol::Pose;
@@ -21,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use b2b_routine::Mode;
 
 use crate::live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource, LiveTarget};
+use crate::{Result, ServiceError};
 use b2b_routine::plan::PlanConfig;
 
 /// One cart's setup (`--setup FILE`, JSON).
@@ -74,10 +74,10 @@ pub fn default_depth() -> bool {
 
 impl CellSetup {
     /// Reads a setup file.
-    pub fn load(file: &Path) -> anyhow::Result<Self> {
+    pub fn load(file: &Path) -> Result<Self> {
         let mut setup: CellSetup = crate::read_json(file)?;
         setup.source = file.to_owned();
-        setup.check().with_context(|| file.display().to_string())?;
+        setup.check().map_err(|e| e.in_file(file))?;
         Ok(setup)
     }
 
@@ -87,34 +87,38 @@ impl CellSetup {
     /// ([`crate::live::LiveTarget::observe`]): for such a board the setup sheet
     /// must also say which corner is the origin, and both carts' sheets the
     /// same corner.
-    pub fn target_spec(&self) -> anyhow::Result<TargetSpec> {
+    pub fn target_spec(&self) -> Result<TargetSpec> {
         Ok(TargetSpec::from_manifest(&self.target, &self.source)?)
     }
 
     /// Refuses a setup that cannot be used (bad poses, target, margin or speed).
-    pub fn check(&self) -> anyhow::Result<()> {
+    pub fn check(&self) -> Result<()> {
         self.base_from_target_approx
             .to_isometry("T_base_target_approx")?;
         self.flange_from_camera_approx
             .to_isometry("T_flange_camera_approx")?;
         WorkspaceBox::new(self.workspace_min, self.workspace_max)?;
-        self.target_spec().context("target")?;
-        anyhow::ensure!(
-            self.joint_margin_rad.is_finite() && (0.0..0.5).contains(&self.joint_margin_rad),
-            "joint_margin_rad must be in [0, 0.5)"
-        );
-        anyhow::ensure!(
-            self.speed_fraction.is_finite()
-                && self.speed_fraction > 0.0
-                && self.speed_fraction <= 1.0,
-            "speed_fraction must be in (0, 1]"
-        );
+        TargetSpec::from_manifest(&self.target, &self.source)
+            .map_err(|e| ServiceError::SetupTarget(Box::new(e)))?;
+        if !(self.joint_margin_rad.is_finite() && (0.0..0.5).contains(&self.joint_margin_rad)) {
+            return Err(ServiceError::JointMargin {
+                value: self.joint_margin_rad,
+            });
+        }
+        if !(self.speed_fraction.is_finite()
+            && self.speed_fraction > 0.0
+            && self.speed_fraction <= 1.0)
+        {
+            return Err(ServiceError::SpeedFraction {
+                value: self.speed_fraction,
+            });
+        }
         Ok(())
     }
 
     /// The safety guard every command passes: joint limits with the margin, rated
     /// velocities scaled, the flange inside the workspace box (nominal kinematics).
-    pub fn guard(&self) -> anyhow::Result<SafetyGuard> {
+    pub fn guard(&self) -> Result<SafetyGuard> {
         let arm = Arm::new(self.model);
         let limits = arm.limits.scaled(self.speed_fraction)?;
         let guard = SafetyGuard::new(
@@ -147,7 +151,7 @@ pub fn live_source(
     fri: FriClient,
     frames: Box<dyn FrameSource>,
     features: Option<b2b_pipeline::rgbd::RgbdOptions>,
-) -> anyhow::Result<LiveSource> {
+) -> Result<LiveSource> {
     let target = LiveTarget::new(setup.target_spec()?);
     let cfg = LiveConfig {
         robot: robot.to_owned(),
@@ -176,11 +180,13 @@ pub fn live_source(
 }
 
 /// Starts the FRI client for `setup` on `conn`.
-pub fn fri_client(setup: &CellSetup, conn: &Connection) -> anyhow::Result<FriClient> {
+pub fn fri_client(setup: &CellSetup, conn: &Connection) -> Result<FriClient> {
     let mut config = FriClientConfig::new(conn.bind);
     config.controller = conn.controller;
-    FriClient::start(config, setup.guard()?)
-        .with_context(|| format!("cannot start the FRI client on {}", conn.bind))
+    FriClient::start(config, setup.guard()?).map_err(|source| ServiceError::FriStart {
+        bind: conn.bind,
+        source: Box::new(source),
+    })
 }
 
 /// Options of the live sources (`--sim`, `--fri`) of `agent run` and `agent auto`.
@@ -222,11 +228,11 @@ pub enum Cart<'a> {
 
 impl<'a> Cart<'a> {
     /// From `--sim` / `--fri` (clap keeps them exclusive).
-    pub fn from_flags(sim: Option<&'a Path>, fri: Option<&'a str>) -> anyhow::Result<Self> {
+    pub fn from_flags(sim: Option<&'a Path>, fri: Option<&'a str>) -> Result<Self> {
         match (sim, fri) {
             (Some(scene), None) => Ok(Self::Sim(scene)),
             (None, Some(addr)) => Ok(Self::Fri(addr)),
-            _ => anyhow::bail!("give a source: --sim SCENE or --fri HOST:PORT"),
+            _ => Err(ServiceError::NoCart),
         }
     }
 }
@@ -239,7 +245,7 @@ pub fn connect(
     live: &LiveArgs,
     mode: Mode,
     features: Option<b2b_vision::features::FeatureKind>,
-) -> anyhow::Result<(LiveSource, Option<crate::sim_cart::CartProcess>)> {
+) -> Result<(LiveSource, Option<crate::sim_cart::CartProcess>)> {
     b2b_protocol::messages::validate_cart_id(robot)?;
     b2b_frames::quiet_iceoryx2_logs();
     let plan = PlanConfig {
@@ -262,27 +268,30 @@ pub fn connect(
                 None => {
                     let dir = std::env::temp_dir()
                         .join(format!("b2b-agent-{}-{robot}", std::process::id()));
-                    let exe = cart_exe.as_deref().context("no simulated cart binary")?;
-                    let file = crate::sim_cart::derive_setup(exe, scene, robot, &dir);
+                    let exe = match &cart_exe {
+                        Some(exe) => exe.clone(),
+                        None => crate::sim_cart::exe()?,
+                    };
+                    let file = crate::sim_cart::derive_setup(&exe, scene, robot, &dir);
                     derived = Some(dir);
                     CellSetup::load(&file?)?
                 }
             };
             // A unique service root per run, so two simulated cells never mix.
             let conn = Connection {
-                bind: "127.0.0.1:0".parse()?,
+                bind: SocketAddr::from(([127, 0, 0, 1], 0)),
                 controller: None,
                 camera_prefix: format!("{}/sim{}", live.camera_prefix, std::process::id()),
             };
             (setup, conn)
         }
         Cart::Fri(addr) => {
-            let file = live.setup.as_ref().context(
-                "--fri needs --setup FILE (arm model, target, approximate board and mount, workspace)",
-            )?;
-            let controller: SocketAddr = addr
-                .parse()
-                .with_context(|| format!("--fri {addr}: not HOST:PORT"))?;
+            let file = live.setup.as_ref().ok_or(ServiceError::FriNeedsSetup)?;
+            let controller: SocketAddr =
+                addr.parse().map_err(|source| ServiceError::FriAddress {
+                    addr: addr.to_owned(),
+                    source,
+                })?;
             let conn = Connection {
                 bind: live.fri_bind,
                 controller: Some(controller),

@@ -6,21 +6,19 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use anyhow::Context;
+use crate::{Result, ServiceError};
 
 /// The simulated cart's binary: `B2B_SIM_CART`, or `b2b-sim-cart` beside this
 /// process's own executable (cargo builds the agent and the cart into one folder).
-pub fn exe() -> anyhow::Result<PathBuf> {
+pub fn exe() -> Result<PathBuf> {
     if let Some(p) = std::env::var_os("B2B_SIM_CART") {
         return Ok(PathBuf::from(p));
     }
-    let own = std::env::current_exe().context("cannot find this process's own executable")?;
+    let own = std::env::current_exe().map_err(ServiceError::OwnExecutable)?;
     let cart = own.with_file_name(format!("b2b-sim-cart{}", std::env::consts::EXE_SUFFIX));
-    anyhow::ensure!(
-        cart.is_file(),
-        "the simulated cart's binary is not at {} (build it with `cargo build -p b2b-sim-cart`, or set B2B_SIM_CART)",
-        cart.display()
-    );
+    if !cart.is_file() {
+        return Err(ServiceError::NoCartBinary { path: cart });
+    }
     Ok(cart)
 }
 
@@ -33,7 +31,7 @@ struct SetupAnswer {
 /// Runs `exe setup` for `robot` of `scene` into `dir`: the setup file the cart
 /// derived (board and mount off by a setup sheet's error; the target's files
 /// beside it).
-pub fn derive_setup(exe: &Path, scene: &Path, robot: &str, dir: &Path) -> anyhow::Result<PathBuf> {
+pub fn derive_setup(exe: &Path, scene: &Path, robot: &str, dir: &Path) -> Result<PathBuf> {
     let out = Command::new(exe)
         .args(["setup", "--robot", robot, "--scene"])
         .arg(scene)
@@ -41,19 +39,21 @@ pub fn derive_setup(exe: &Path, scene: &Path, robot: &str, dir: &Path) -> anyhow
         .arg(dir)
         .stdin(Stdio::null())
         .output()
-        .with_context(|| format!("cannot start the simulated cart {}", exe.display()))?;
-    anyhow::ensure!(
-        out.status.success(),
-        "the simulated cart refused {}: {}",
-        scene.display(),
-        String::from_utf8_lossy(&out.stderr).trim()
-    );
-    let answer: SetupAnswer = serde_json::from_slice(&out.stdout).with_context(|| {
-        format!(
-            "the simulated cart's setup answer is not {{\"setup\": FILE}}: {}",
-            String::from_utf8_lossy(&out.stdout).trim()
-        )
-    })?;
+        .map_err(|source| ServiceError::CartStart {
+            exe: exe.to_owned(),
+            source,
+        })?;
+    if !out.status.success() {
+        return Err(ServiceError::CartRefused {
+            scene: scene.to_owned(),
+            stderr: String::from_utf8_lossy(&out.stderr).trim().to_owned(),
+        });
+    }
+    let answer: SetupAnswer =
+        serde_json::from_slice(&out.stdout).map_err(|source| ServiceError::CartAnswer {
+            stdout: String::from_utf8_lossy(&out.stdout).trim().to_owned(),
+            source,
+        })?;
     Ok(answer.setup)
 }
 
@@ -99,7 +99,7 @@ impl Drop for CartProcess {
 }
 
 /// Starts `exe run` for `run`.
-pub fn spawn(exe: &Path, run: &CartRun<'_>) -> anyhow::Result<CartProcess> {
+pub fn spawn(exe: &Path, run: &CartRun<'_>) -> Result<CartProcess> {
     let child = Command::new(exe)
         .args(["run", "--robot", run.robot, "--client"])
         .arg(run.client.to_string())
@@ -114,7 +114,10 @@ pub fn spawn(exe: &Path, run: &CartRun<'_>) -> anyhow::Result<CartProcess> {
         )
         .stdin(Stdio::null())
         .spawn()
-        .with_context(|| format!("cannot start the simulated cart {}", exe.display()))?;
+        .map_err(|source| ServiceError::CartStart {
+            exe: exe.to_owned(),
+            source,
+        })?;
     Ok(CartProcess {
         child,
         derived_setup: None,

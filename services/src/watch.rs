@@ -50,7 +50,6 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use b2b_calib::drift::DriftOptions;
 use b2b_protocol::CalibrationResult;
 use b2b_protocol::messages::{COORDINATOR, Capture, DriftAlarm, Envelope, agent_key, alarm_key};
@@ -58,6 +57,7 @@ pub use b2b_watch::{SCENE, SceneMatching, WatchError, WatchEvent, Watcher};
 
 use crate::agent::{Sequence, WATCH_TOPIC};
 use crate::bus::{self, Bus};
+use crate::{Result, ServiceError};
 
 /// Settings of `coordinator watch`.
 #[derive(Debug, Clone)]
@@ -105,7 +105,7 @@ pub fn run(
     opts: &WatchOptions,
     stop: &AtomicBool,
     on_event: &mut dyn FnMut(&[WatchEvent]),
-) -> anyhow::Result<WatchRun> {
+) -> Result<WatchRun> {
     let inbox = bus.subscribe(&agent_key("*", WATCH_TOPIC))?;
     let seq = Sequence::open_named(&opts.state_dir, "watch")?;
     let started = Instant::now();
@@ -162,14 +162,14 @@ pub fn watch_command(
     opts: &WatchOptions,
     recorder: &b2b_viz::Recorder,
     stop: &AtomicBool,
-) -> anyhow::Result<()> {
+) -> Result<()> {
     let result: CalibrationResult = crate::read_json(result_file)?;
     result
         .validate()
-        .with_context(|| result_file.display().to_string())?;
+        .map_err(|e| ServiceError::from(e).in_file(result_file))?;
     let bus = bus::ZenohBus::open(zenoh, bus::Role::Coordinator)?;
     let watcher = Watcher::new(&result, opts.drift, opts.max_age)
-        .with_context(|| result_file.display().to_string())?;
+        .map_err(|e| ServiceError::from(e).in_file(result_file))?;
     eprintln!(
         "watching {} against {} (baseline {} observations, CUSUM k {}, h {}; against the result: chi2 limit {})",
         watcher.robots().join(", "),

@@ -43,7 +43,7 @@ fn replay_agent(
     state_dir: &Path,
     wait_result: Duration,
     stop: &AtomicBool,
-) -> anyhow::Result<Option<b2b_protocol::CalibrationResult>> {
+) -> b2b_services::Result<Option<b2b_protocol::CalibrationResult>> {
     replay_agent_of(bus, &dataset(), robot, state_dir, wait_result, stop)
 }
 
@@ -55,7 +55,7 @@ fn replay_agent_of(
     state_dir: &Path,
     wait_result: Duration,
     stop: &AtomicBool,
-) -> anyhow::Result<Option<b2b_protocol::CalibrationResult>> {
+) -> b2b_services::Result<Option<b2b_protocol::CalibrationResult>> {
     let opts = AgentOptions {
         robot: robot.into(),
         zenoh: None,
@@ -182,8 +182,8 @@ fn announced_session(sessions: &dyn Inbox) -> String {
 }
 
 type Outcome = (
-    anyhow::Result<(b2b_protocol::CalibrationResult, Counters)>,
-    Vec<anyhow::Result<Option<b2b_protocol::CalibrationResult>>>,
+    b2b_services::Result<(b2b_protocol::CalibrationResult, Counters)>,
+    Vec<b2b_services::Result<Option<b2b_protocol::CalibrationResult>>>,
 );
 
 /// A coordinator for robot1 and robot2 and their agents replaying `data`,
@@ -566,9 +566,9 @@ fn a_failed_solve_ends_the_agents_wait_with_its_reason() {
         b2b_pipeline::B2bMethod::Rgbd,
         |_| {},
     );
-    let reason = format!("{:#}", now.unwrap_err());
+    let reason = b2b_pipeline::error_chain(&now.unwrap_err());
     for got in agents {
-        let e = format!("{:#}", got.unwrap_err());
+        let e = b2b_pipeline::error_chain(&got.unwrap_err());
         assert!(
             e.starts_with("the coordinator's solve failed: ") && e.ends_with(&reason),
             "{e} (the coordinator: {reason})"

@@ -96,7 +96,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    b2b_services::run_main(|| {
+    b2b_services::run_main::<anyhow::Error>(|| {
         let cli = Cli::parse();
         b2b_services::init_logging();
         match cli.command {

@@ -12,12 +12,12 @@ fn scene(name: &str) -> PathBuf {
 }
 
 fn setup(scene: &Path, robot: &str, dir: &Path) -> anyhow::Result<PathBuf> {
-    derive_setup(
+    Ok(derive_setup(
         Path::new(env!("CARGO_BIN_EXE_b2b-sim-cart")),
         scene,
         robot,
         dir,
-    )
+    )?)
 }
 
 #[test]

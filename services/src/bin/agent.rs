@@ -219,13 +219,17 @@ fn finish(
     if let Ok(rec) = Arc::try_unwrap(opts.rerun) {
         finish_recording(rec);
     }
-    print_agent_result(&opts.robot, result?, opts.wait_result.as_secs())
+    Ok(print_agent_result(
+        &opts.robot,
+        result?,
+        opts.wait_result.as_secs(),
+    )?)
 }
 
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
-    run_main(|| match cli.command {
+    run_main::<anyhow::Error>(|| match cli.command {
         Command::Run {
             robot,
             replay,
@@ -242,9 +246,12 @@ fn main() -> std::process::ExitCode {
             let opts = agent_options(&robot, bus, pace, live.noise.options(), &rerun)?;
             let stop = stop_flag();
             let result = match (replay, Cart::from_flags(sim.as_deref(), fri.as_deref())) {
-                (Some(dataset), _) => run_replay(&opts, &dataset, features, &stop),
+                (Some(dataset), _) => {
+                    run_replay(&opts, &dataset, features, &stop).map_err(anyhow::Error::from)
+                }
                 (None, Ok(cart)) => connect(&robot, cart, &live, Mode::Program, features)
-                    .and_then(|(mut source, _cart)| run_agent(&opts, &mut source, &stop)),
+                    .and_then(|(mut source, _cart)| run_agent(&opts, &mut source, &stop))
+                    .map_err(anyhow::Error::from),
                 (None, Err(_)) => Err(anyhow::anyhow!(
                     "give a source: --replay DIR, --sim SCENE or --fri HOST:PORT"
                 )),
@@ -292,7 +299,7 @@ fn main() -> std::process::ExitCode {
             let (zenoh, state_dir) = (bus.zenoh.clone(), bus.state_dir.clone());
             let opts = agent_options(&robot, bus, Duration::ZERO, live.noise.options(), &rerun)?;
             let stop = stop_flag();
-            let result = run_agent(&opts, &mut source, &stop);
+            let result = run_agent(&opts, &mut source, &stop).map_err(anyhow::Error::from);
             let calibrated = result.as_ref().is_ok_and(Option::is_some);
             let watched = match watch_hz {
                 Some(hz) if calibrated => {

@@ -34,7 +34,7 @@ struct Cli {
 fn main() -> std::process::ExitCode {
     b2b_services::init_logging();
     let cli = Cli::parse();
-    b2b_services::run_main(|| {
+    b2b_services::run_main::<anyhow::Error>(|| {
         // Through the services' own bus: on a secured configuration every
         // ping's signature is checked and every pong signed, as the services do.
         let bus = bus::ZenohBus::open(Some(&cli.zenoh), bus::Role::Agent)?;

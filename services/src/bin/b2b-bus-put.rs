@@ -35,7 +35,7 @@ struct Cli {
 fn main() -> std::process::ExitCode {
     b2b_services::init_logging();
     let cli = Cli::parse();
-    b2b_services::run_main(|| {
+    b2b_services::run_main::<anyhow::Error>(|| {
         let payload = std::fs::read(&cli.payload)
             .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", cli.payload.display()))?;
         let bus = bus::ZenohBus::open(Some(&cli.zenoh), bus::Role::Agent)?;

@@ -160,7 +160,7 @@ fn printable_of(target: Target, json: &Path) -> anyhow::Result<PrintableTarget> 
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
-    run_main(|| match cli.command {
+    run_main::<anyhow::Error>(|| match cli.command {
         Command::Target {
             target,
             builtin,
@@ -262,7 +262,8 @@ fn main() -> std::process::ExitCode {
                     cy: c.cy,
                     dist: r.dist5().to_vec(),
                 },
-            )
+            )?;
+            Ok(())
         }
     })
 }

@@ -351,7 +351,7 @@ fn main() -> std::process::ExitCode {
     init_logging();
     b2b_frames::quiet_iceoryx2_logs();
     let cli = Cli::parse();
-    run_main(|| {
+    run_main::<anyhow::Error>(|| {
         ensure!(
             cli.fps.is_finite() && cli.fps >= 0.0,
             "--fps must be a number >= 0"

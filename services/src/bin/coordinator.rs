@@ -390,7 +390,7 @@ fn print_issued(issued: &b2b_services::pki::Issued, dir: &std::path::Path) {
 fn check_result_destinations(out: &std::path::Path) -> anyhow::Result<()> {
     let paths = result_paths(out);
     let refs: Vec<&std::path::Path> = paths.iter().map(PathBuf::as_path).collect();
-    check_destinations(&refs)
+    Ok(check_destinations(&refs)?)
 }
 
 /// `--refine-intrinsics` is for the methods that fit the cameras.
@@ -405,7 +405,7 @@ fn check_refine_intrinsics(refine_intrinsics: bool, method: B2bMethod) -> anyhow
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
-    run_main(|| match cli.command {
+    run_main::<anyhow::Error>(|| match cli.command {
         Command::Run {
             method,
             zenoh,
@@ -678,13 +678,13 @@ fn main() -> std::process::ExitCode {
                 &stop_flag(),
             );
             finish_recording(recorder);
-            outcome
+            Ok(outcome?)
         }
         Command::History {
             robot,
             json,
             state_dir,
-        } => history::print_listing(&state_dir, robot.as_deref(), json),
+        } => Ok(history::print_listing(&state_dir, robot.as_deref(), json)?),
         Command::Pki {
             command:
                 PkiCommand::Init {

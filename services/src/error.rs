@@ -1,0 +1,491 @@
+//! The services library's one error type. Each variant says what went wrong
+//! with the facts as fields (file, robot, frame, sizes); a variant that wraps
+//! another error keeps it as its source and leaves it out of its own text, and
+//! an error of another crate passed on as it is prints as it did
+//! (`transparent`). The binaries print the chain once ([`crate::run_main`]).
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use b2b_pipeline::PipelineError;
+
+/// The services library's result.
+pub type Result<T, E = ServiceError> = std::result::Result<T, E>;
+
+/// What went wrong in the services' library.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    // The errors of the crates the services wire, passed on as they are.
+    #[error(transparent)]
+    Bus(#[from] b2b_bus::BusError),
+    #[error(transparent)]
+    Pipeline(Box<PipelineError>),
+    #[error(transparent)]
+    Store(Box<b2b_store::StoreError>),
+    #[error(transparent)]
+    Dataset(Box<b2b_dataset::DatasetError>),
+    #[error(transparent)]
+    Protocol(#[from] b2b_protocol::ProtocolError),
+    #[error(transparent)]
+    Calib(#[from] b2b_calib::CalibError),
+    #[error(transparent)]
+    Vision(#[from] b2b_vision::VisionError),
+    #[error(transparent)]
+    Robot(#[from] b2b_robot::RobotError),
+    #[error(transparent)]
+    Routine(#[from] b2b_routine::RoutineError),
+    #[error(transparent)]
+    Fri(Box<kuka_fri::FriError>),
+    #[error(transparent)]
+    Frames(#[from] b2b_frames::FramesError),
+    #[error(transparent)]
+    Report(Box<b2b_report::ReportError>),
+    #[error(transparent)]
+    Watch(Box<b2b_watch::WatchError>),
+    #[error(transparent)]
+    Json(#[from] serde_json::Error),
+
+    /// A file or folder that could not be read, written or created.
+    #[error("cannot {action} {}", path.display())]
+    Io {
+        /// "read", "write", "create", "create state folder".
+        action: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A JSON file that is not the kind expected.
+    #[error("{}: not a valid file of this kind", path.display())]
+    NotValidFile {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    /// What a file holds is wrong (the cause says what).
+    #[error("{}", path.display())]
+    InFile {
+        path: PathBuf,
+        #[source]
+        source: Box<ServiceError>,
+    },
+
+    // Result files.
+    /// A destination a file cannot replace: a directory, a pipe, a device.
+    #[error(
+        "{} is {kind}: it cannot be replaced by the output file; remove it or choose another path",
+        path.display()
+    )]
+    NotReplaceable { path: PathBuf, kind: &'static str },
+    /// [`crate::outputs::write_together`] refused before writing anything.
+    #[error(
+        "nothing was written (the previous files, if any, are left as they were: {})",
+        joined(files)
+    )]
+    NothingWritten {
+        files: Vec<PathBuf>,
+        #[source]
+        source: Box<ServiceError>,
+    },
+    #[error("cannot write {} (through {}); nothing was replaced", path.display(), temporary.display())]
+    WriteThrough {
+        path: PathBuf,
+        temporary: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot keep {} while replacing it", path.display())]
+    KeepPrevious {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot replace {}; nothing was replaced", path.display())]
+    Replace {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// An output path inside the dataset it is computed from.
+    #[error(
+        "{flag} {} is inside the dataset folder {} (resolved: {}): a result is never \
+         written into the data it comes from; choose a path outside the dataset",
+        path.display(),
+        dataset.display(),
+        resolved.display()
+    )]
+    OutputInsideDataset {
+        flag: String,
+        path: PathBuf,
+        dataset: PathBuf,
+        resolved: PathBuf,
+    },
+    /// An output path that is one of the inputs.
+    #[error(
+        "{flag} {} is the input {}: it would be overwritten; choose another path",
+        path.display(),
+        input.display()
+    )]
+    OutputIsInput {
+        flag: String,
+        path: PathBuf,
+        input: PathBuf,
+    },
+
+    // The agent and the coordinator on the bus.
+    #[error("{}: not a sequence number", path.display())]
+    NotASequenceNumber {
+        path: PathBuf,
+        #[source]
+        source: std::num::ParseIntError,
+    },
+    /// A thread panicked holding one of the agent's locks.
+    #[error("{what} lock poisoned")]
+    Poisoned { what: &'static str },
+    #[error("robot '{robot}' is not in {}", dataset.display())]
+    RobotNotInDataset { robot: String, dataset: PathBuf },
+    #[error("interrupted")]
+    Interrupted,
+    #[error("interrupted after {captures} captures")]
+    InterruptedAfter { captures: u64 },
+    /// The coordinator's solve failed; its reason as it sent it.
+    #[error("the coordinator's solve failed: {reason}")]
+    SolveFailed { reason: String },
+    /// No result, and no coordinator ever announced a session.
+    #[error(
+        "no result from the coordinator within {waited_s} s, and no coordinator heard (a \
+         running one announces its session twice a second): {why}"
+    )]
+    NoCoordinator {
+        waited_s: u64,
+        /// Why nobody may be hearing the agent ([`b2b_bus::Bus::unreached`]).
+        why: String,
+    },
+    #[error("no result from the coordinator within {waited_s} s")]
+    NoResult { waited_s: u64 },
+    #[error("need two robots, heard from {}: {robots:?}", robots.len())]
+    TooFewRobots { robots: Vec<String> },
+    #[error(
+        "the rgbd method pairs two robots' images, heard from {}: {robots:?} (give --robots a,b)",
+        robots.len()
+    )]
+    RgbdNeedsTwoRobots { robots: Vec<String> },
+    #[error("robots '{}', '{}': hand-eyes for the RGB-D method", robots[0], robots[1])]
+    RgbdHandEyes {
+        robots: [String; 2],
+        #[source]
+        source: Box<PipelineError>,
+    },
+    #[error("base-to-base needs two robots, the dataset lists {listed}")]
+    DatasetNotTwoRobots { listed: usize },
+    #[error("{}: format '{found}', expected '{expected}'", path.display())]
+    WrongFormat {
+        path: PathBuf,
+        found: String,
+        expected: &'static str,
+    },
+    #[error(
+        "{}: robot '{robot}' is not in the dataset ({})",
+        path.display(),
+        robots.join(", ")
+    )]
+    HandEyeRobotNotInDataset {
+        path: PathBuf,
+        robot: String,
+        robots: Vec<String>,
+    },
+    #[error("{}: a second hand-eye for robot '{robot}'", path.display())]
+    SecondHandEye { path: PathBuf, robot: String },
+    #[error("{}: covariance has a non-finite entry", path.display())]
+    NonFiniteCovariance { path: PathBuf },
+    #[error("--hand-eye: need one HANDEYE.json for each of {} and {}", robots[0], robots[1])]
+    MissingHandEye { robots: [String; 2] },
+    #[error("cannot read the history")]
+    HistoryRead(#[source] Box<b2b_history::HistoryError>),
+    #[error("cannot write the history to stdout")]
+    HistoryWrite(#[source] std::io::Error),
+
+    // The cell: its setup, the arm, the camera, the simulated cart.
+    #[error("target")]
+    SetupTarget(#[source] Box<PipelineError>),
+    #[error("joint_margin_rad must be in [0, 0.5)")]
+    JointMargin { value: f64 },
+    #[error("speed_fraction must be in (0, 1]")]
+    SpeedFraction { value: f64 },
+    #[error("give a source: --sim SCENE or --fri HOST:PORT")]
+    NoCart,
+    #[error("--fri needs --setup FILE (arm model, target, approximate board and mount, workspace)")]
+    FriNeedsSetup,
+    #[error("--fri {addr}: not HOST:PORT")]
+    FriAddress {
+        addr: String,
+        #[source]
+        source: std::net::AddrParseError,
+    },
+    #[error("cannot start the FRI client on {bind}")]
+    FriStart {
+        bind: SocketAddr,
+        #[source]
+        source: Box<kuka_fri::FriError>,
+    },
+    /// No measured joints: none within the wait (the cause), or none yet.
+    #[error("no joint state from the FRI controller")]
+    NoJointState {
+        #[source]
+        source: Option<Box<kuka_fri::FriError>>,
+    },
+    #[error("the FRI session is not commanding (is the robot application's overlay running?)")]
+    NotCommanding(#[source] Box<kuka_fri::FriError>),
+    #[error("the arm did not come to rest within {waited:?}")]
+    NotAtRest { waited: Duration },
+    #[error("the arm moved during the exposure of frame {frame}")]
+    MovedDuringExposure { frame: u64 },
+    #[error(
+        "frame {frame} is {}x{}, the camera was {}x{} when its intrinsics were estimated",
+        size.0,
+        size.1,
+        estimated.0,
+        estimated.1
+    )]
+    FrameSizeChanged {
+        frame: u64,
+        size: (u32, u32),
+        estimated: (u32, u32),
+    },
+    #[error("no viewpoint of the board is reachable safely: {dropped:?}")]
+    NoSafeViewpoint {
+        /// Why each candidate was dropped, and how many were.
+        dropped: Vec<(String, usize)>,
+    },
+    #[error("no plan")]
+    NoPlan,
+    #[error("the plan has no viewpoint to watch from")]
+    NoWatchViewpoint,
+    #[error("the routine asked for a viewpoint the plan does not have")]
+    UnplannedViewpoint { index: usize },
+    /// The capture routine asked for a step that needs a frame before any.
+    #[error("{step} without a frame")]
+    NoFrame { step: &'static str },
+    #[error("no camera intrinsics yet")]
+    NoCamera,
+    #[error("no camera frame exposed after the arm came to rest within {waited:?} ({service})")]
+    NoFrameInTime { waited: Duration, service: String },
+    #[error("the {service} service carries {} frames", kind.name())]
+    WrongStream {
+        /// "colour" or "depth".
+        service: &'static str,
+        kind: b2b_frames::StreamKind,
+    },
+    #[error("short {}frame", if *depth { "depth " } else { "" })]
+    ShortFrame { depth: bool },
+    #[error("depth frame {frame} has no depth unit")]
+    NoDepthUnit { frame: u64 },
+    #[error(
+        "depth frame {frame} is {}x{} but its colour frame is {}x{}: depth must be aligned to colour",
+        depth.0,
+        depth.1,
+        colour.0,
+        colour.1
+    )]
+    DepthNotAligned {
+        frame: u64,
+        depth: (u32, u32),
+        colour: (u32, u32),
+    },
+    #[error(
+        "frame {frame} carries focal lengths {fx} and {fy}: neither positive nor both zero (none given)"
+    )]
+    BadFocalLengths { frame: u64, fx: f64, fy: f64 },
+    #[error("cannot find this process's own executable")]
+    OwnExecutable(#[source] std::io::Error),
+    #[error(
+        "the simulated cart's binary is not at {} (build it with `cargo build -p b2b-sim-cart`, or set B2B_SIM_CART)",
+        path.display()
+    )]
+    NoCartBinary { path: PathBuf },
+    #[error("cannot start the simulated cart {}", exe.display())]
+    CartStart {
+        exe: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The simulated cart refused to derive a setup; its stderr as it wrote it.
+    #[error("the simulated cart refused {}: {stderr}", scene.display())]
+    CartRefused { scene: PathBuf, stderr: String },
+    #[error("the simulated cart's setup answer is not {{\"setup\": FILE}}: {stdout}")]
+    CartAnswer {
+        /// What the cart printed.
+        stdout: String,
+        #[source]
+        source: serde_json::Error,
+    },
+
+    // Recordings.
+    #[error("cannot write the recording {}", path.display())]
+    RecordingSave {
+        path: PathBuf,
+        #[source]
+        source: Box<b2b_viz::VizError>,
+    },
+    #[error("cannot stream to the rerun viewer at {addr}")]
+    RecordingConnect {
+        addr: String,
+        #[source]
+        source: Box<b2b_viz::VizError>,
+    },
+
+    /// Not a failure: the command ends with a documented exit status.
+    #[error(transparent)]
+    Exit(#[from] crate::ExitStatus),
+}
+
+impl ServiceError {
+    /// The io error of `action` on `path`, for `map_err`.
+    pub fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> Self {
+        let path = path.to_owned();
+        move |source| ServiceError::Io {
+            action,
+            path,
+            source,
+        }
+    }
+
+    /// This error as the cause of what is wrong in `path`.
+    pub fn in_file(self, path: &Path) -> Self {
+        ServiceError::InFile {
+            path: path.to_owned(),
+            source: Box::new(self),
+        }
+    }
+}
+
+/// Paths as one comma-separated list.
+fn joined(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// `From` for the boxed errors, so that `?` boxes them.
+macro_rules! boxed_from {
+    ($($variant:ident: $error:ty),* $(,)?) => {
+        $(
+            impl From<$error> for ServiceError {
+                fn from(e: $error) -> Self {
+                    ServiceError::$variant(Box::new(e))
+                }
+            }
+        )*
+    };
+}
+
+boxed_from!(
+    Pipeline: PipelineError,
+    Store: b2b_store::StoreError,
+    Dataset: b2b_dataset::DatasetError,
+    Fri: kuka_fri::FriError,
+    Report: b2b_report::ReportError,
+    Watch: b2b_watch::WatchError,
+);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn io_error() -> std::io::Error {
+        std::io::Error::new(std::io::ErrorKind::PermissionDenied, "denied")
+    }
+
+    /// Every variant that wraps a cause keeps it as its source and prints it
+    /// once in the chain.
+    #[test]
+    fn wrapping_variants_keep_their_cause_once() {
+        let json = || serde_json::from_str::<u8>("x").unwrap_err();
+        let io = ServiceError::io("read", Path::new("a.json"))(io_error());
+        for e in [
+            ServiceError::io("create", Path::new("out"))(io_error()),
+            ServiceError::NotValidFile {
+                path: "a.json".into(),
+                source: json(),
+            },
+            ServiceError::NothingWritten {
+                files: vec!["a.json".into()],
+                source: Box::new(ServiceError::NotReplaceable {
+                    path: "b".into(),
+                    kind: "a directory",
+                }),
+            },
+            ServiceError::WriteThrough {
+                path: "a".into(),
+                temporary: ".a.tmp".into(),
+                source: io_error(),
+            },
+            ServiceError::KeepPrevious {
+                path: "a".into(),
+                source: io_error(),
+            },
+            ServiceError::Replace {
+                path: "a".into(),
+                source: io_error(),
+            },
+            ServiceError::NotASequenceNumber {
+                path: "a.seq".into(),
+                source: "x".parse::<u64>().unwrap_err(),
+            },
+            ServiceError::HistoryWrite(io_error()),
+            ServiceError::FriAddress {
+                addr: "x".into(),
+                source: "x".parse::<SocketAddr>().unwrap_err(),
+            },
+            ServiceError::OwnExecutable(io_error()),
+            ServiceError::CartStart {
+                exe: "cart".into(),
+                source: io_error(),
+            },
+            ServiceError::CartAnswer {
+                stdout: "?".into(),
+                source: json(),
+            },
+            io.in_file(Path::new("setup.json")),
+        ] {
+            b2b_errors::assert_cause_once(&e);
+        }
+    }
+
+    /// A message in a file reads "file: message: cause", as the same message
+    /// with the file as its context did.
+    #[test]
+    fn a_file_names_itself_before_its_cause() {
+        let e = ServiceError::NoDepthUnit { frame: 3 }.in_file(Path::new("s.json"));
+        assert_eq!(
+            b2b_pipeline::error_chain(&e),
+            "s.json: depth frame 3 has no depth unit"
+        );
+    }
+
+    /// An exit status ends the command with its code whether the binary
+    /// raised it or the library did; other errors carry none.
+    #[test]
+    fn an_exit_status_is_found_in_the_chain() {
+        let status = || crate::ExitStatus {
+            code: 3,
+            message: "alarm".into(),
+        };
+        let own = status();
+        assert_eq!(crate::exit_status(&own).map(|s| s.code), Some(3));
+        let library = ServiceError::from(status());
+        assert_eq!(crate::exit_status(&library).map(|s| s.code), Some(3));
+        let wrapped = ServiceError::from(status()).in_file(Path::new("RESULT.json"));
+        assert_eq!(crate::exit_status(&wrapped).map(|s| s.code), Some(3));
+        assert!(crate::exit_status(&ServiceError::NoPlan).is_none());
+    }
+
+    /// Errors that pass through many functions stay small (clippy's
+    /// `result_large_err` warns from 128 bytes).
+    #[test]
+    fn the_error_is_small() {
+        assert!(std::mem::size_of::<ServiceError>() <= 128);
+    }
+}
