@@ -46,51 +46,59 @@ enum Builtin {
 enum Command {
     /// Write a target as SVG (exact size in mm) and PNG (at --dpi), plus the
     /// multimarker file for a multimarker target.
-    Target {
-        /// A dataset `target` block or a whole dataset.json.
-        #[arg(long, conflicts_with = "builtin", required_unless_present = "builtin")]
-        target: Option<PathBuf>,
-        /// A built-in layout instead of --target.
-        #[arg(long, value_enum)]
-        builtin: Option<Builtin>,
-        /// Dictionary of a built-in layout (OpenCV name).
-        #[arg(long, default_value = "DICT_4X4_50")]
-        dictionary: String,
-        /// Marker id of `--builtin marker`.
-        #[arg(long, default_value_t = 0)]
-        id: usize,
-        /// Marker width of `--builtin marker`, millimetres.
-        #[arg(long, default_value_t = 100.0)]
-        marker_mm: f64,
-        /// Output folder.
-        #[arg(long)]
-        out: PathBuf,
-        /// File name stem.
-        #[arg(long, default_value = "target")]
-        stem: String,
-        /// PNG resolution.
-        #[arg(long, default_value_t = 300.0)]
-        dpi: f64,
-        /// White margin around the target, millimetres (at least one marker cell for
-        /// marker targets).
-        #[arg(long, default_value_t = 15.0)]
-        margin_mm: f64,
-    },
+    Target(TargetArgs),
     /// Calibrate a camera from board images and write dataset.json's camera block.
-    Intrinsics {
-        /// Folder of images (png, jpg, bmp, tif).
-        #[arg(long)]
-        images: PathBuf,
-        /// The board: a checkerboard or charuco `target` block, or a dataset.json.
-        #[arg(long)]
-        target: PathBuf,
-        /// Where to write the camera block (JSON).
-        #[arg(long)]
-        out: PathBuf,
-        /// Fit k3 as well (default: k3 = 0).
-        #[arg(long)]
-        fit_k3: bool,
-    },
+    Intrinsics(IntrinsicsArgs),
+}
+
+// The flags of `target` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct TargetArgs {
+    /// A dataset `target` block or a whole dataset.json.
+    #[arg(long, conflicts_with = "builtin", required_unless_present = "builtin")]
+    target: Option<PathBuf>,
+    /// A built-in layout instead of --target.
+    #[arg(long, value_enum)]
+    builtin: Option<Builtin>,
+    /// Dictionary of a built-in layout (OpenCV name).
+    #[arg(long, default_value = "DICT_4X4_50")]
+    dictionary: String,
+    /// Marker id of `--builtin marker`.
+    #[arg(long, default_value_t = 0)]
+    id: usize,
+    /// Marker width of `--builtin marker`, millimetres.
+    #[arg(long, default_value_t = 100.0)]
+    marker_mm: f64,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+    /// File name stem.
+    #[arg(long, default_value = "target")]
+    stem: String,
+    /// PNG resolution.
+    #[arg(long, default_value_t = 300.0)]
+    dpi: f64,
+    /// White margin around the target, millimetres (at least one marker cell for
+    /// marker targets).
+    #[arg(long, default_value_t = 15.0)]
+    margin_mm: f64,
+}
+
+// The flags of `intrinsics` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct IntrinsicsArgs {
+    /// Folder of images (png, jpg, bmp, tif).
+    #[arg(long)]
+    images: PathBuf,
+    /// The board: a checkerboard or charuco `target` block, or a dataset.json.
+    #[arg(long)]
+    target: PathBuf,
+    /// Where to write the camera block (JSON).
+    #[arg(long)]
+    out: PathBuf,
+    /// Fit k3 as well (default: k3 = 0).
+    #[arg(long)]
+    fit_k3: bool,
 }
 
 /// Reads a target block, or the `target` of a dataset.json.
@@ -157,114 +165,122 @@ fn printable_of(target: Target, json: &Path) -> anyhow::Result<PrintableTarget> 
     })
 }
 
+/// `target`: a printable target.
+fn target(args: TargetArgs) -> anyhow::Result<()> {
+    let TargetArgs {
+        target,
+        builtin,
+        dictionary,
+        id,
+        marker_mm,
+        out,
+        stem,
+        dpi,
+        margin_mm,
+    } = args;
+    let printable = match (target, builtin) {
+        (Some(json), _) => printable_of(read_target(&json)?, &json)?,
+        (None, Some(Builtin::Multimarker4x3)) => PrintableTarget::Multimarker {
+            config: MultimarkerConfig::grid_4x3(),
+            dictionary,
+        },
+        (None, Some(Builtin::MultimarkerCorner)) => PrintableTarget::Multimarker {
+            config: MultimarkerConfig::three_face_corner(),
+            dictionary,
+        },
+        (None, Some(Builtin::Marker)) => PrintableTarget::Marker {
+            dictionary,
+            id,
+            marker_m: marker_mm * 1e-3,
+        },
+        (None, None) => bail!("give --target JSON or --builtin"),
+    };
+    let files = write_printable(&printable, dpi, margin_mm * 1e-3, &out, &stem)?;
+    for f in files {
+        println!("{}", f.display());
+    }
+    Ok(())
+}
+
+/// `intrinsics`: a camera's intrinsics from board images.
+fn intrinsics(args: IntrinsicsArgs) -> anyhow::Result<()> {
+    let IntrinsicsArgs {
+        images,
+        target,
+        out,
+        fit_k3,
+    } = args;
+    let board = match read_target(&target)? {
+        Target::Checkerboard {
+            inner_corners,
+            square_m,
+        } => CalibrationTarget::Checkerboard(CheckerboardSpec {
+            cols: inner_corners[0] as usize,
+            rows: inner_corners[1] as usize,
+            square_m,
+        }),
+        Target::Charuco {
+            squares,
+            square_m,
+            marker_m,
+            dictionary,
+        } => CalibrationTarget::Charuco(CharucoSpec {
+            squares: [squares[0] as usize, squares[1] as usize],
+            square_m,
+            marker_m,
+            dictionary,
+        }),
+        other => bail!(
+            "{}: intrinsics need a checkerboard or charuco target, not '{}'",
+            target.display(),
+            other.kind()
+        ),
+    };
+    let options = IntrinsicsOptions {
+        fit_k3,
+        ..Default::default()
+    };
+    let r = calibrate_intrinsics_from_dir(&images, &board, &options)?;
+    for i in &r.images {
+        match (&i.rejected, i.rms_px) {
+            (None, Some(e)) => println!("{}: {} corners, {e:.3} px", i.name, i.corners),
+            (Some(why), _) => println!("{}: rejected: {why}", i.name),
+            (None, None) => println!("{}: used", i.name),
+        }
+    }
+    let c = &r.camera;
+    println!(
+        "{} of {} images, RMS {:.3} px: fx {:.2} fy {:.2} cx {:.2} cy {:.2} dist {:?}",
+        r.used(),
+        r.images.len(),
+        r.rms_px,
+        c.fx,
+        c.fy,
+        c.cx,
+        c.cy,
+        r.dist5()
+    );
+    write_json(
+        &out,
+        &CameraIntrinsics {
+            width: c.width,
+            height: c.height,
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            dist: r.dist5().to_vec(),
+        },
+    )?;
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     init_logging();
     let cli = Cli::parse();
     run_main::<anyhow::Error>(|| match cli.command {
-        Command::Target {
-            target,
-            builtin,
-            dictionary,
-            id,
-            marker_mm,
-            out,
-            stem,
-            dpi,
-            margin_mm,
-        } => {
-            let printable = match (target, builtin) {
-                (Some(json), _) => printable_of(read_target(&json)?, &json)?,
-                (None, Some(Builtin::Multimarker4x3)) => PrintableTarget::Multimarker {
-                    config: MultimarkerConfig::grid_4x3(),
-                    dictionary,
-                },
-                (None, Some(Builtin::MultimarkerCorner)) => PrintableTarget::Multimarker {
-                    config: MultimarkerConfig::three_face_corner(),
-                    dictionary,
-                },
-                (None, Some(Builtin::Marker)) => PrintableTarget::Marker {
-                    dictionary,
-                    id,
-                    marker_m: marker_mm * 1e-3,
-                },
-                (None, None) => bail!("give --target JSON or --builtin"),
-            };
-            let files = write_printable(&printable, dpi, margin_mm * 1e-3, &out, &stem)?;
-            for f in files {
-                println!("{}", f.display());
-            }
-            Ok(())
-        }
-        Command::Intrinsics {
-            images,
-            target,
-            out,
-            fit_k3,
-        } => {
-            let board = match read_target(&target)? {
-                Target::Checkerboard {
-                    inner_corners,
-                    square_m,
-                } => CalibrationTarget::Checkerboard(CheckerboardSpec {
-                    cols: inner_corners[0] as usize,
-                    rows: inner_corners[1] as usize,
-                    square_m,
-                }),
-                Target::Charuco {
-                    squares,
-                    square_m,
-                    marker_m,
-                    dictionary,
-                } => CalibrationTarget::Charuco(CharucoSpec {
-                    squares: [squares[0] as usize, squares[1] as usize],
-                    square_m,
-                    marker_m,
-                    dictionary,
-                }),
-                other => bail!(
-                    "{}: intrinsics need a checkerboard or charuco target, not '{}'",
-                    target.display(),
-                    other.kind()
-                ),
-            };
-            let options = IntrinsicsOptions {
-                fit_k3,
-                ..Default::default()
-            };
-            let r = calibrate_intrinsics_from_dir(&images, &board, &options)?;
-            for i in &r.images {
-                match (&i.rejected, i.rms_px) {
-                    (None, Some(e)) => println!("{}: {} corners, {e:.3} px", i.name, i.corners),
-                    (Some(why), _) => println!("{}: rejected: {why}", i.name),
-                    (None, None) => println!("{}: used", i.name),
-                }
-            }
-            let c = &r.camera;
-            println!(
-                "{} of {} images, RMS {:.3} px: fx {:.2} fy {:.2} cx {:.2} cy {:.2} dist {:?}",
-                r.used(),
-                r.images.len(),
-                r.rms_px,
-                c.fx,
-                c.fy,
-                c.cx,
-                c.cy,
-                r.dist5()
-            );
-            write_json(
-                &out,
-                &CameraIntrinsics {
-                    width: c.width,
-                    height: c.height,
-                    fx: c.fx,
-                    fy: c.fy,
-                    cx: c.cx,
-                    cy: c.cy,
-                    dist: r.dist5().to_vec(),
-                },
-            )?;
-            Ok(())
-        }
+        Command::Target(args) => target(args),
+        Command::Intrinsics(args) => intrinsics(args),
     })
 }
 

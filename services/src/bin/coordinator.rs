@@ -43,207 +43,235 @@ enum Command {
     /// Listen to the agents over zenoh; once every agent heard from has finished,
     /// compute base1_from_base2, publish it and write RESULT.json (Ctrl-C: compute
     /// with what has arrived).
-    Run {
-        /// board, multimarker or rgbd (rgbd: the agents publish features with
-        /// `agent run --features`, and their board observations give the hand-eyes).
-        #[arg(long, default_value = "board", value_parser = ["board", "multimarker", "rgbd"])]
-        method: String,
-        /// zenoh configuration file (JSON5); default: loopback peer listening on
-        /// tcp/127.0.0.1:7447.
-        #[arg(long)]
-        zenoh: Option<PathBuf>,
-        /// Where every received sample is journalled (a restart resumes from it)
-        /// and the history is kept (history.sqlite).
-        #[arg(long, default_value = "coordinator-state")]
-        state_dir: PathBuf,
-        /// Robot ids in order (robot 1 first); default: sorted ids.
-        #[arg(long, value_delimiter = ',')]
-        robots: Option<Vec<String>>,
-        /// Where to write RESULT.json (beside it: RESULT.ros.yaml, RESULT.opencv.yml, a
-        /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
-        #[arg(long)]
-        out: PathBuf,
-        /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
-        /// k1, k2, p1, p2, k3) with the hand-eyes and base-to-base, starting from the
-        /// intrinsics each capture carries (the camera's own, e.g. a RealSense's
-        /// factory calibration, which can be slightly off).
-        #[arg(long)]
-        refine_intrinsics: bool,
-        #[command(flatten)]
-        noise: RobotNoiseArgs,
-        #[command(flatten)]
-        tolerance: ToleranceArgs,
-        #[command(flatten)]
-        rerun: RerunArgs,
-    },
+    Run(RunArgs),
     /// base1_from_base2 from a b2b-dataset/1 folder (never reads
     /// ground_truth.json or reference.json). With N > 2 robots (board and
     /// multimarker methods) every base is solved in one problem and given in the
     /// first robot's base (RESULT.json `reference`, `bases`, `pairs`).
-    Calibrate {
-        /// The b2b-dataset/1 folder (dataset.json, robotN/captures.csv, images).
-        #[arg(long)]
-        dataset: PathBuf,
-        /// board, multimarker or rgbd (default: from the dataset's target kind).
-        #[arg(long, value_parser = ["board", "multimarker", "rgbd"])]
-        method: Option<String>,
-        /// rgbd only: each robot's HANDEYE.json (`agent handeye`, from an earlier
-        /// calibration; matched by its robot id) instead of a hand-eye from the
-        /// dataset's target: the base-to-base step then needs no target at all.
-        #[arg(long = "hand-eye")]
-        hand_eye: Vec<PathBuf>,
-        /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
-        /// k1, k2, p1, p2, k3) with the hand-eyes and base-to-base. A robot without
-        /// intrinsics in dataset.json always gets them estimated from its images
-        /// and refined so.
-        #[arg(long)]
-        refine_intrinsics: bool,
-        /// Where to write RESULT.json (beside it: RESULT.ros.yaml, RESULT.opencv.yml, a
-        /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
-        #[arg(long)]
-        out: PathBuf,
-        /// The coordinator's state folder: the result and its hand-eyes are
-        /// recorded in its history (history.sqlite), and each hand-eye is
-        /// checked against its robot's earlier ones.
-        #[arg(long, default_value = "coordinator-state")]
-        state_dir: PathBuf,
-        #[command(flatten)]
-        noise: RobotNoiseArgs,
-        #[command(flatten)]
-        tolerance: ToleranceArgs,
-        #[command(flatten)]
-        rerun: RerunArgs,
-    },
+    Calibrate(CalibrateArgs),
     /// Checks a result against pointer-tip touch pairs (touch_points.csv format).
-    Verify {
-        /// The RESULT.json to check (from run or calibrate).
-        #[arg(long)]
-        result: PathBuf,
-        /// Pointer-tip touch pairs (CSV: each row a point touched by both robots,
-        /// in each robot's base; shared/dataset-format.md).
-        #[arg(long = "touch-points")]
-        touch_points: PathBuf,
-        /// Also write the metrics as JSON.
-        #[arg(long)]
-        json: Option<PathBuf>,
-        /// Each pointer tip's noise (1 sigma, mm), added to the predicted bounds.
-        #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
-        tip_sigma_mm: f64,
-        /// The two robots the touch file pairs, `a,b` (columns 1-3 in a's base,
-        /// 4-6 in b's), for a result of more than two robots; default: the
-        /// first two (T_base1_base2).
-        #[arg(long, value_parser = robot_pair)]
-        pair: Option<(String, String)>,
-        #[command(flatten)]
-        tolerance: ToleranceArgs,
-        #[command(flatten)]
-        rerun: RerunArgs,
-    },
+    Verify(VerifyArgs),
     /// Imports another tool's saved hand-eye samples as one robot's pose-only
     /// captures of a b2b-dataset/1 folder (created, or the robot added to it):
     /// easy_handeye2's NAME.samples (eye-in-hand; `robot` is T_base_flange,
     /// `tracking` T_camera_target) or MoveIt Calibration's saved samples
     /// (`effector_wrt_world` T_base_flange, `object_wrt_sensor` T_camera_target).
-    Import {
-        /// An easy_handeye2 samples file (YAML).
-        #[arg(
-            long = "easy-handeye",
-            required_unless_present = "moveit",
-            conflicts_with = "moveit"
-        )]
-        easy_handeye: Option<PathBuf>,
-        /// A MoveIt Calibration samples file (YAML, "Save samples").
-        #[arg(long)]
-        moveit: Option<PathBuf>,
-        /// The robot id the samples are of (its folder in the dataset).
-        #[arg(long)]
-        robot: String,
-        /// The target, as JSON exactly like dataset.json's `target`.
-        #[arg(long)]
-        target: PathBuf,
-        /// The camera's intrinsics, as JSON exactly like a robot's `camera` in
-        /// dataset.json.
-        #[arg(long)]
-        camera: PathBuf,
-        /// The dataset folder.
-        #[arg(long)]
-        out: PathBuf,
-    },
+    Import(ImportArgs),
     /// An HTML report of a result (and its verification): plots of residuals,
     /// error distributions, touch errors against the predicted bound, view
     /// coverage, rejected captures, and the numbers.
-    Report {
-        /// The RESULT.json to report on.
-        #[arg(long)]
-        result: PathBuf,
-        /// verify --json output.
-        #[arg(long)]
-        verify: Option<PathBuf>,
-        /// HANDEYE.json files (agent handeye) adding per-capture residuals.
-        #[arg(long = "hand-eye")]
-        hand_eye: Vec<PathBuf>,
-        /// Touch points (touch_points.csv) adding per-touch errors.
-        #[arg(long = "touch-points")]
-        touch_points: Option<PathBuf>,
-        /// Each pointer tip's noise (1 sigma, mm), for the per-touch bounds.
-        #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
-        tip_sigma_mm: f64,
-        /// Output folder (index.html and the plots).
-        #[arg(long)]
-        out: PathBuf,
-        /// The coordinator's state folder, whose history (history.sqlite) adds
-        /// each robot's hand-eye over time.
-        #[arg(long, default_value = "coordinator-state")]
-        state_dir: PathBuf,
-    },
+    Report(ReportArgs),
     /// The drift watch during the operation: follows the agents' observations
     /// (agent watch) and raises an alarm (b2b/coordinator/alarm, a line on
     /// stderr, the recording) when a cart's base has moved against RESULT.json
     /// by more than the result and the observations' noise explain (a
     /// sequential test; thresholds printed at start, ARCHITECTURE.md).
-    Watch {
-        /// The RESULT.json the carts were calibrated with.
-        #[arg(long)]
-        result: PathBuf,
-        /// zenoh configuration file (JSON5); default: loopback peer listening on
-        /// tcp/127.0.0.1:7447.
-        #[arg(long)]
-        zenoh: Option<PathBuf>,
-        /// Exit with status 3 at the first alarm.
-        #[arg(long)]
-        until_alarm: bool,
-        /// Stop after this many seconds (default: until Ctrl-C).
-        #[arg(long, value_parser = b2b_services::positive, allow_negative_numbers = true)]
-        duration_s: Option<f64>,
-        /// Pair an observation with the reference robot's latest one only if
-        /// that one is at most this old (s).
-        #[arg(long, default_value_t = 2.0, value_parser = b2b_services::positive, allow_negative_numbers = true)]
-        max_age_s: f64,
-        /// Where the alarms' sequence number is kept.
-        #[arg(long, default_value = "coordinator-state")]
-        state_dir: PathBuf,
-        #[command(flatten)]
-        rerun: RerunArgs,
-    },
+    Watch(WatchArgs),
     /// Lists what the platform has seen: every result recorded by calibrate and
     /// run (when, method, robots, T_base1_base2, predicted p95, the result file)
     /// and each robot's hand-eyes over time.
-    History {
-        /// Only this robot's results and hand-eyes.
-        #[arg(long)]
-        robot: Option<String>,
-        /// Print the history as JSON on stdout.
-        #[arg(long)]
-        json: bool,
-        /// The coordinator's state folder (history.sqlite in it).
-        #[arg(long, default_value = "coordinator-state")]
-        state_dir: PathBuf,
-    },
+    History(HistoryArgs),
     /// The platform's certificate authority and secured bus configurations.
     Pki {
         #[command(subcommand)]
         command: PkiCommand,
     },
+}
+
+// The flags of `run` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct RunArgs {
+    /// board, multimarker or rgbd (rgbd: the agents publish features with
+    /// `agent run --features`, and their board observations give the hand-eyes).
+    #[arg(long, default_value = "board", value_parser = ["board", "multimarker", "rgbd"])]
+    method: String,
+    /// zenoh configuration file (JSON5); default: loopback peer listening on
+    /// tcp/127.0.0.1:7447.
+    #[arg(long)]
+    zenoh: Option<PathBuf>,
+    /// Where every received sample is journalled (a restart resumes from it)
+    /// and the history is kept (history.sqlite).
+    #[arg(long, default_value = "coordinator-state")]
+    state_dir: PathBuf,
+    /// Robot ids in order (robot 1 first); default: sorted ids.
+    #[arg(long, value_delimiter = ',')]
+    robots: Option<Vec<String>>,
+    /// Where to write RESULT.json (beside it: RESULT.ros.yaml, RESULT.opencv.yml, a
+    /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
+    #[arg(long)]
+    out: PathBuf,
+    /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
+    /// k1, k2, p1, p2, k3) with the hand-eyes and base-to-base, starting from the
+    /// intrinsics each capture carries (the camera's own, e.g. a RealSense's
+    /// factory calibration, which can be slightly off).
+    #[arg(long)]
+    refine_intrinsics: bool,
+    #[command(flatten)]
+    noise: RobotNoiseArgs,
+    #[command(flatten)]
+    tolerance: ToleranceArgs,
+    #[command(flatten)]
+    rerun: RerunArgs,
+}
+
+// The flags of `calibrate` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct CalibrateArgs {
+    /// The b2b-dataset/1 folder (dataset.json, robotN/captures.csv, images).
+    #[arg(long)]
+    dataset: PathBuf,
+    /// board, multimarker or rgbd (default: from the dataset's target kind).
+    #[arg(long, value_parser = ["board", "multimarker", "rgbd"])]
+    method: Option<String>,
+    /// rgbd only: each robot's HANDEYE.json (`agent handeye`, from an earlier
+    /// calibration; matched by its robot id) instead of a hand-eye from the
+    /// dataset's target: the base-to-base step then needs no target at all.
+    #[arg(long = "hand-eye")]
+    hand_eye: Vec<PathBuf>,
+    /// board, multimarker: also refine each camera's intrinsics (fx, fy, cx, cy,
+    /// k1, k2, p1, p2, k3) with the hand-eyes and base-to-base. A robot without
+    /// intrinsics in dataset.json always gets them estimated from its images
+    /// and refined so.
+    #[arg(long)]
+    refine_intrinsics: bool,
+    /// Where to write RESULT.json (beside it: RESULT.ros.yaml, RESULT.opencv.yml, a
+    /// ROS 2 launch file RESULT.launch.py and a URDF joint RESULT.urdf).
+    #[arg(long)]
+    out: PathBuf,
+    /// The coordinator's state folder: the result and its hand-eyes are
+    /// recorded in its history (history.sqlite), and each hand-eye is
+    /// checked against its robot's earlier ones.
+    #[arg(long, default_value = "coordinator-state")]
+    state_dir: PathBuf,
+    #[command(flatten)]
+    noise: RobotNoiseArgs,
+    #[command(flatten)]
+    tolerance: ToleranceArgs,
+    #[command(flatten)]
+    rerun: RerunArgs,
+}
+
+// The flags of `verify` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct VerifyArgs {
+    /// The RESULT.json to check (from run or calibrate).
+    #[arg(long)]
+    result: PathBuf,
+    /// Pointer-tip touch pairs (CSV: each row a point touched by both robots,
+    /// in each robot's base; shared/dataset-format.md).
+    #[arg(long = "touch-points")]
+    touch_points: PathBuf,
+    /// Also write the metrics as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Each pointer tip's noise (1 sigma, mm), added to the predicted bounds.
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
+    tip_sigma_mm: f64,
+    /// The two robots the touch file pairs, `a,b` (columns 1-3 in a's base,
+    /// 4-6 in b's), for a result of more than two robots; default: the
+    /// first two (T_base1_base2).
+    #[arg(long, value_parser = robot_pair)]
+    pair: Option<(String, String)>,
+    #[command(flatten)]
+    tolerance: ToleranceArgs,
+    #[command(flatten)]
+    rerun: RerunArgs,
+}
+
+// The flags of `import` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct ImportArgs {
+    /// An easy_handeye2 samples file (YAML).
+    #[arg(
+        long = "easy-handeye",
+        required_unless_present = "moveit",
+        conflicts_with = "moveit"
+    )]
+    easy_handeye: Option<PathBuf>,
+    /// A MoveIt Calibration samples file (YAML, "Save samples").
+    #[arg(long)]
+    moveit: Option<PathBuf>,
+    /// The robot id the samples are of (its folder in the dataset).
+    #[arg(long)]
+    robot: String,
+    /// The target, as JSON exactly like dataset.json's `target`.
+    #[arg(long)]
+    target: PathBuf,
+    /// The camera's intrinsics, as JSON exactly like a robot's `camera` in
+    /// dataset.json.
+    #[arg(long)]
+    camera: PathBuf,
+    /// The dataset folder.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+// The flags of `report` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct ReportArgs {
+    /// The RESULT.json to report on.
+    #[arg(long)]
+    result: PathBuf,
+    /// verify --json output.
+    #[arg(long)]
+    verify: Option<PathBuf>,
+    /// HANDEYE.json files (agent handeye) adding per-capture residuals.
+    #[arg(long = "hand-eye")]
+    hand_eye: Vec<PathBuf>,
+    /// Touch points (touch_points.csv) adding per-touch errors.
+    #[arg(long = "touch-points")]
+    touch_points: Option<PathBuf>,
+    /// Each pointer tip's noise (1 sigma, mm), for the per-touch bounds.
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative, allow_negative_numbers = true)]
+    tip_sigma_mm: f64,
+    /// Output folder (index.html and the plots).
+    #[arg(long)]
+    out: PathBuf,
+    /// The coordinator's state folder, whose history (history.sqlite) adds
+    /// each robot's hand-eye over time.
+    #[arg(long, default_value = "coordinator-state")]
+    state_dir: PathBuf,
+}
+
+// The flags of `watch` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct WatchArgs {
+    /// The RESULT.json the carts were calibrated with.
+    #[arg(long)]
+    result: PathBuf,
+    /// zenoh configuration file (JSON5); default: loopback peer listening on
+    /// tcp/127.0.0.1:7447.
+    #[arg(long)]
+    zenoh: Option<PathBuf>,
+    /// Exit with status 3 at the first alarm.
+    #[arg(long)]
+    until_alarm: bool,
+    /// Stop after this many seconds (default: until Ctrl-C).
+    #[arg(long, value_parser = b2b_services::positive, allow_negative_numbers = true)]
+    duration_s: Option<f64>,
+    /// Pair an observation with the reference robot's latest one only if
+    /// that one is at most this old (s).
+    #[arg(long, default_value_t = 2.0, value_parser = b2b_services::positive, allow_negative_numbers = true)]
+    max_age_s: f64,
+    /// Where the alarms' sequence number is kept.
+    #[arg(long, default_value = "coordinator-state")]
+    state_dir: PathBuf,
+    #[command(flatten)]
+    rerun: RerunArgs,
+}
+
+// The flags of `history` (the help is the variant's doc comment).
+#[derive(clap::Args, Debug)]
+struct HistoryArgs {
+    /// Only this robot's results and hand-eyes.
+    #[arg(long)]
+    robot: Option<String>,
+    /// Print the history as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+    /// The coordinator's state folder (history.sqlite in it).
+    #[arg(long, default_value = "coordinator-state")]
+    state_dir: PathBuf,
 }
 
 #[derive(Subcommand, Debug)]
@@ -402,297 +430,315 @@ fn check_refine_intrinsics(refine_intrinsics: bool, method: B2bMethod) -> anyhow
     Ok(())
 }
 
-fn main() -> std::process::ExitCode {
-    init_logging();
-    let cli = Cli::parse();
-    run_main::<anyhow::Error>(|| match cli.command {
-        Command::Run {
-            method,
-            zenoh,
-            state_dir,
+/// `run`: the live calibration over zenoh.
+fn run(args: RunArgs) -> anyhow::Result<()> {
+    let RunArgs {
+        method,
+        zenoh,
+        state_dir,
+        robots,
+        out,
+        refine_intrinsics,
+        noise,
+        tolerance,
+        rerun,
+    } = args;
+    check_result_destinations(&out)?;
+    let tolerance_mm = tolerance.resolve()?;
+    let recorder = rerun.recorder("b2b-coordinator")?;
+    let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
+    check_refine_intrinsics(refine_intrinsics, method)?;
+    let opts = coordinator::RunOptions {
+        zenoh,
+        state_dir: state_dir.clone(),
+        robots: robots.as_ref().map_or(2, Vec::len),
+        order: robots.clone(),
+        refine: RefineOptions {
+            refine_intrinsics,
+            ..noise.options()
+        },
+        method,
+        rgbd: RgbdOptions::default(),
+    };
+    let (mut result, counters) = coordinator::run(&opts, &stop_flag())?;
+    history::check_before_writing(&state_dir, &mut result);
+    let verdict = result_verdict(&result, tolerance_mm);
+    result.verdict = Some(verdict.clone());
+    let line = result_line(&result, &verdict);
+    write_result(&out, &result).context("writing the result")?;
+    let order = robots
+        .clone()
+        .unwrap_or_else(|| history::robots_of(&result));
+    history::record_after_writing(&state_dir, "run", &result, &out, &order);
+    log_result(&recorder, &result, robots.as_deref());
+    log_verdict(&recorder, &verdict, &line);
+    finish_recording(recorder);
+    print_result(&result);
+    print_findings(&result, None);
+    println!(
+        "messages: {} accepted, {} duplicates dropped, {} conflicting captures (not used), {} rejected, {} of another session or none (dropped)",
+        counters.accepted,
+        counters.duplicates,
+        counters.conflicts,
+        counters.rejected,
+        counters.stale
+    );
+    println!("wrote {}", out.display());
+    conclude(&verdict, &line)
+}
+
+/// `calibrate`: the offline calibration of a dataset.
+fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
+    let CalibrateArgs {
+        dataset,
+        method,
+        hand_eye,
+        refine_intrinsics,
+        out,
+        state_dir,
+        noise,
+        tolerance,
+        rerun,
+    } = args;
+    let inputs: Vec<&std::path::Path> = hand_eye.iter().map(PathBuf::as_path).collect();
+    refuse_output_over_input("--out", &out, Some(&dataset), &inputs)?;
+    check_result_destinations(&out)?;
+    let tolerance_mm = tolerance.resolve()?;
+    let recorder = rerun.recorder("b2b-coordinator")?;
+    b2b_services::show_pipeline_progress();
+    let ds = load_dataset(&dataset)?;
+    let method = match method {
+        Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
+        None => B2bMethod::default_for(&ds.manifest.target),
+    };
+    check_refine_intrinsics(refine_intrinsics, method)?;
+    let (mut result, cameras, spread) = if hand_eye.is_empty() {
+        let options = RefineOptions {
+            refine_intrinsics,
+            ..noise.options()
+        };
+        let mut run = base_to_base_run(&ds, method, &options)?;
+        run.result.verdict = Some(result_verdict(&run.result, tolerance_mm));
+        log_offline_calibration(&recorder, &ds, &run);
+        (run.result, run.cameras, run.spread)
+    } else {
+        anyhow::ensure!(
+            method == B2bMethod::Rgbd,
+            "--hand-eye is for --method rgbd (the {} method estimates the hand-eyes from its target)",
+            method.name()
+        );
+        let result = coordinator::rgbd_with_hand_eye_files(&ds, &hand_eye)?;
+        (result, vec![], None)
+    };
+    history::check_before_writing(&state_dir, &mut result);
+    let verdict = result_verdict(&result, tolerance_mm);
+    result.verdict = Some(verdict.clone());
+    let line = result_line(&result, &verdict);
+    write_result(&out, &result).context("writing the result")?;
+    let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
+    history::record_after_writing(&state_dir, "calibrate", &result, &out, &order);
+    if !hand_eye.is_empty() {
+        log_result(&recorder, &result, Some(&order));
+    }
+    log_verdict(&recorder, &verdict, &line);
+    finish_recording(recorder);
+    print_result(&result);
+    for c in cameras
+        .iter()
+        .filter(|c| c.refined || c.estimated.is_some())
+    {
+        println!("{}", c.describe());
+    }
+    for c in &cameras {
+        if let Some(noise) = &c.pose_error {
+            println!(
+                "{}: robot pose error as the residuals show it: {}",
+                c.robot,
+                noise.describe()
+            );
+        }
+    }
+    if let Some(spread) = spread {
+        println!("{}", spread.describe());
+    }
+    print_findings(&result, Some(b2b_pipeline::causes::kind::SPREAD));
+    println!("wrote {}", out.display());
+    conclude(&verdict, &line)
+}
+
+/// `verify`: a result against touch points.
+fn verify(args: VerifyArgs) -> anyhow::Result<()> {
+    let VerifyArgs {
+        result,
+        touch_points,
+        json,
+        tip_sigma_mm,
+        pair,
+        tolerance,
+        rerun,
+    } = args;
+    if let Some(path) = &json {
+        refuse_output_over_input("--json", path, None, &[&result, &touch_points])?;
+        check_destinations(&[path])?;
+    }
+    let tolerance_mm = tolerance.resolve()?;
+    let recorder = rerun.recorder("b2b-verify")?;
+    let r: CalibrationResult = read_json(&result)?;
+    r.validate().with_context(|| result.display().to_string())?;
+    let touches = b2b_dataset::read_touch_points(&touch_points)?;
+    let pair = pair.as_ref().map(|(a, b)| (a.as_str(), b.as_str()));
+    // The file at fault: the touches' problems are the touch file's.
+    let (mut report, m) = verify_pair(&r, pair, &touches, tip_sigma_mm * 1e-3).map_err(|e| {
+        let file = match e {
+            b2b_pipeline::PipelineError::Touches { .. } => &touch_points,
+            _ => &result,
+        };
+        anyhow::Error::new(e).context(file.display().to_string())
+    })?;
+    let verdict = verify_verdict(&report, &m, tolerance_mm);
+    report.verdict = Some(verdict.clone());
+    let line = verdict.line(&format!(
+        "touch error p95 {:.2} mm",
+        b2b_pipeline::causes::touch_p95_m(&m) * 1e3
+    ));
+    if let Some((a, b)) = pair {
+        println!(
+            "robot {b}'s base in robot {a}'s, against {}",
+            touch_points.display()
+        );
+    }
+    print_verification(&report, &m);
+    if let Some(path) = json {
+        write_json(&path, &report)?;
+        println!("wrote {}", path.display());
+    }
+    let a_from_b = match pair {
+        Some((a, b)) => pair_transform(&r, a, b)?.0,
+        None => r.base1_from_base2.to_isometry("T_base1_base2")?,
+    };
+    log_verification(&recorder, &r, &a_from_b, &touches, &m)?;
+    log_verdict(&recorder, &verdict, &line);
+    finish_recording(recorder);
+    conclude(&verdict, &line)
+}
+
+/// `import`: another tool's hand-eye samples into a dataset.
+fn import(args: ImportArgs) -> anyhow::Result<()> {
+    let ImportArgs {
+        easy_handeye,
+        moveit,
+        robot,
+        target,
+        camera,
+        out,
+    } = args;
+    b2b_protocol::messages::validate_cart_id(&robot)?;
+    let (captures, source) = match (easy_handeye, moveit) {
+        (Some(f), _) => (
+            b2b_dataset::import::read_easy_handeye_samples(&f)?,
+            format!("easy_handeye2 samples {}", f.display()),
+        ),
+        (None, Some(f)) => (
+            b2b_dataset::import::read_moveit_samples(&f)?,
+            format!("MoveIt Calibration samples {}", f.display()),
+        ),
+        (None, None) => anyhow::bail!("give --easy-handeye FILE or --moveit FILE"),
+    };
+    let n = captures.len();
+    let ds = b2b_dataset::import::add_robot(
+        &out,
+        &robot,
+        read_json(&target)?,
+        read_json(&camera)?,
+        captures,
+        &source,
+    )?;
+    let ids: Vec<&str> = ds.manifest.robots.iter().map(|r| r.id.as_str()).collect();
+    println!(
+        "{robot}: {n} samples imported as pose-only captures; {} now has robots {}",
+        out.display(),
+        ids.join(", ")
+    );
+    Ok(())
+}
+
+/// `report`: the HTML report of a result.
+fn report(args: ReportArgs) -> anyhow::Result<()> {
+    let ReportArgs {
+        result,
+        verify,
+        hand_eye,
+        touch_points,
+        tip_sigma_mm,
+        out,
+        state_dir,
+    } = args;
+    let mut inputs = report_inputs(
+        &result,
+        verify.as_deref(),
+        &hand_eye,
+        touch_points.as_deref(),
+        tip_sigma_mm * 1e-3,
+    )?;
+    if let Err(e) = add_history(&mut inputs, &history::db_path(&state_dir)) {
+        eprintln!(
+            "warning: the report has no hand-eye history: {}",
+            b2b_pipeline::error_chain(&e)
+        );
+    }
+    let files = b2b_report::write_report(&inputs, &out)?;
+    println!("wrote {}", files.index.display());
+    Ok(())
+}
+
+/// `watch`: the drift watch.
+fn watch(args: WatchArgs) -> anyhow::Result<()> {
+    let WatchArgs {
+        result,
+        zenoh,
+        until_alarm,
+        duration_s,
+        max_age_s,
+        state_dir,
+        rerun,
+    } = args;
+    let recorder = rerun.recorder("b2b-watch")?;
+    let opts = b2b_services::watch::WatchOptions {
+        drift: b2b_calib::drift::DriftOptions::default(),
+        max_age: std::time::Duration::from_secs_f64(max_age_s),
+        until_alarm,
+        duration: duration_s.map(std::time::Duration::from_secs_f64),
+        state_dir,
+    };
+    let outcome = b2b_services::watch::watch_command(
+        &result,
+        zenoh.as_deref(),
+        &opts,
+        &recorder,
+        &stop_flag(),
+    );
+    finish_recording(recorder);
+    Ok(outcome?)
+}
+
+/// `history`: what the state folder's history holds.
+fn list_history(args: HistoryArgs) -> anyhow::Result<()> {
+    let HistoryArgs {
+        robot,
+        json,
+        state_dir,
+    } = args;
+    Ok(history::print_listing(&state_dir, robot.as_deref(), json)?)
+}
+
+/// `pki`: the certificate authority's commands.
+fn pki(command: PkiCommand) -> anyhow::Result<()> {
+    match command {
+        PkiCommand::Init {
+            dir,
             robots,
-            out,
-            refine_intrinsics,
-            noise,
-            tolerance,
-            rerun,
-        } => {
-            check_result_destinations(&out)?;
-            let tolerance_mm = tolerance.resolve()?;
-            let recorder = rerun.recorder("b2b-coordinator")?;
-            let method: B2bMethod = method.parse().map_err(anyhow::Error::msg)?;
-            check_refine_intrinsics(refine_intrinsics, method)?;
-            let opts = coordinator::RunOptions {
-                zenoh,
-                state_dir: state_dir.clone(),
-                robots: robots.as_ref().map_or(2, Vec::len),
-                order: robots.clone(),
-                refine: RefineOptions {
-                    refine_intrinsics,
-                    ..noise.options()
-                },
-                method,
-                rgbd: RgbdOptions::default(),
-            };
-            let (mut result, counters) = coordinator::run(&opts, &stop_flag())?;
-            history::check_before_writing(&state_dir, &mut result);
-            let verdict = result_verdict(&result, tolerance_mm);
-            result.verdict = Some(verdict.clone());
-            let line = result_line(&result, &verdict);
-            write_result(&out, &result).context("writing the result")?;
-            let order = robots
-                .clone()
-                .unwrap_or_else(|| history::robots_of(&result));
-            history::record_after_writing(&state_dir, "run", &result, &out, &order);
-            log_result(&recorder, &result, robots.as_deref());
-            log_verdict(&recorder, &verdict, &line);
-            finish_recording(recorder);
-            print_result(&result);
-            print_findings(&result, None);
-            println!(
-                "messages: {} accepted, {} duplicates dropped, {} conflicting captures (not used), {} rejected, {} of another session or none (dropped)",
-                counters.accepted,
-                counters.duplicates,
-                counters.conflicts,
-                counters.rejected,
-                counters.stale
-            );
-            println!("wrote {}", out.display());
-            conclude(&verdict, &line)
-        }
-        Command::Calibrate {
-            dataset,
-            method,
-            hand_eye,
-            refine_intrinsics,
-            out,
-            state_dir,
-            noise,
-            tolerance,
-            rerun,
-        } => {
-            let inputs: Vec<&std::path::Path> = hand_eye.iter().map(PathBuf::as_path).collect();
-            refuse_output_over_input("--out", &out, Some(&dataset), &inputs)?;
-            check_result_destinations(&out)?;
-            let tolerance_mm = tolerance.resolve()?;
-            let recorder = rerun.recorder("b2b-coordinator")?;
-            b2b_services::show_pipeline_progress();
-            let ds = load_dataset(&dataset)?;
-            let method = match method {
-                Some(m) => m.parse::<B2bMethod>().map_err(anyhow::Error::msg)?,
-                None => B2bMethod::default_for(&ds.manifest.target),
-            };
-            check_refine_intrinsics(refine_intrinsics, method)?;
-            let (mut result, cameras, spread) = if hand_eye.is_empty() {
-                let options = RefineOptions {
-                    refine_intrinsics,
-                    ..noise.options()
-                };
-                let mut run = base_to_base_run(&ds, method, &options)?;
-                run.result.verdict = Some(result_verdict(&run.result, tolerance_mm));
-                log_offline_calibration(&recorder, &ds, &run);
-                (run.result, run.cameras, run.spread)
-            } else {
-                anyhow::ensure!(
-                    method == B2bMethod::Rgbd,
-                    "--hand-eye is for --method rgbd (the {} method estimates the hand-eyes from its target)",
-                    method.name()
-                );
-                let result = coordinator::rgbd_with_hand_eye_files(&ds, &hand_eye)?;
-                (result, vec![], None)
-            };
-            history::check_before_writing(&state_dir, &mut result);
-            let verdict = result_verdict(&result, tolerance_mm);
-            result.verdict = Some(verdict.clone());
-            let line = result_line(&result, &verdict);
-            write_result(&out, &result).context("writing the result")?;
-            let order: Vec<String> = ds.robots.iter().map(|r| r.id.clone()).collect();
-            history::record_after_writing(&state_dir, "calibrate", &result, &out, &order);
-            if !hand_eye.is_empty() {
-                log_result(&recorder, &result, Some(&order));
-            }
-            log_verdict(&recorder, &verdict, &line);
-            finish_recording(recorder);
-            print_result(&result);
-            for c in cameras
-                .iter()
-                .filter(|c| c.refined || c.estimated.is_some())
-            {
-                println!("{}", c.describe());
-            }
-            for c in &cameras {
-                if let Some(noise) = &c.pose_error {
-                    println!(
-                        "{}: robot pose error as the residuals show it: {}",
-                        c.robot,
-                        noise.describe()
-                    );
-                }
-            }
-            if let Some(spread) = spread {
-                println!("{}", spread.describe());
-            }
-            print_findings(&result, Some(b2b_pipeline::causes::kind::SPREAD));
-            println!("wrote {}", out.display());
-            conclude(&verdict, &line)
-        }
-        Command::Verify {
-            result,
-            touch_points,
-            json,
-            tip_sigma_mm,
-            pair,
-            tolerance,
-            rerun,
-        } => {
-            if let Some(path) = &json {
-                refuse_output_over_input("--json", path, None, &[&result, &touch_points])?;
-                check_destinations(&[path])?;
-            }
-            let tolerance_mm = tolerance.resolve()?;
-            let recorder = rerun.recorder("b2b-verify")?;
-            let r: CalibrationResult = read_json(&result)?;
-            r.validate().with_context(|| result.display().to_string())?;
-            let touches = b2b_dataset::read_touch_points(&touch_points)?;
-            let pair = pair.as_ref().map(|(a, b)| (a.as_str(), b.as_str()));
-            // The file at fault: the touches' problems are the touch file's.
-            let (mut report, m) =
-                verify_pair(&r, pair, &touches, tip_sigma_mm * 1e-3).map_err(|e| {
-                    let file = match e {
-                        b2b_pipeline::PipelineError::Touches { .. } => &touch_points,
-                        _ => &result,
-                    };
-                    anyhow::Error::new(e).context(file.display().to_string())
-                })?;
-            let verdict = verify_verdict(&report, &m, tolerance_mm);
-            report.verdict = Some(verdict.clone());
-            let line = verdict.line(&format!(
-                "touch error p95 {:.2} mm",
-                b2b_pipeline::causes::touch_p95_m(&m) * 1e3
-            ));
-            if let Some((a, b)) = pair {
-                println!(
-                    "robot {b}'s base in robot {a}'s, against {}",
-                    touch_points.display()
-                );
-            }
-            print_verification(&report, &m);
-            if let Some(path) = json {
-                write_json(&path, &report)?;
-                println!("wrote {}", path.display());
-            }
-            let a_from_b = match pair {
-                Some((a, b)) => pair_transform(&r, a, b)?.0,
-                None => r.base1_from_base2.to_isometry("T_base1_base2")?,
-            };
-            log_verification(&recorder, &r, &a_from_b, &touches, &m)?;
-            log_verdict(&recorder, &verdict, &line);
-            finish_recording(recorder);
-            conclude(&verdict, &line)
-        }
-        Command::Import {
-            easy_handeye,
-            moveit,
-            robot,
-            target,
-            camera,
-            out,
-        } => {
-            b2b_protocol::messages::validate_cart_id(&robot)?;
-            let (captures, source) = match (easy_handeye, moveit) {
-                (Some(f), _) => (
-                    b2b_dataset::import::read_easy_handeye_samples(&f)?,
-                    format!("easy_handeye2 samples {}", f.display()),
-                ),
-                (None, Some(f)) => (
-                    b2b_dataset::import::read_moveit_samples(&f)?,
-                    format!("MoveIt Calibration samples {}", f.display()),
-                ),
-                (None, None) => anyhow::bail!("give --easy-handeye FILE or --moveit FILE"),
-            };
-            let n = captures.len();
-            let ds = b2b_dataset::import::add_robot(
-                &out,
-                &robot,
-                read_json(&target)?,
-                read_json(&camera)?,
-                captures,
-                &source,
-            )?;
-            let ids: Vec<&str> = ds.manifest.robots.iter().map(|r| r.id.as_str()).collect();
-            println!(
-                "{robot}: {n} samples imported as pose-only captures; {} now has robots {}",
-                out.display(),
-                ids.join(", ")
-            );
-            Ok(())
-        }
-        Command::Report {
-            result,
-            verify,
-            hand_eye,
-            touch_points,
-            tip_sigma_mm,
-            out,
-            state_dir,
-        } => {
-            let mut inputs = report_inputs(
-                &result,
-                verify.as_deref(),
-                &hand_eye,
-                touch_points.as_deref(),
-                tip_sigma_mm * 1e-3,
-            )?;
-            if let Err(e) = add_history(&mut inputs, &history::db_path(&state_dir)) {
-                eprintln!(
-                    "warning: the report has no hand-eye history: {}",
-                    b2b_pipeline::error_chain(&e)
-                );
-            }
-            let files = b2b_report::write_report(&inputs, &out)?;
-            println!("wrote {}", files.index.display());
-            Ok(())
-        }
-        Command::Watch {
-            result,
-            zenoh,
-            until_alarm,
-            duration_s,
-            max_age_s,
-            state_dir,
-            rerun,
-        } => {
-            let recorder = rerun.recorder("b2b-watch")?;
-            let opts = b2b_services::watch::WatchOptions {
-                drift: b2b_calib::drift::DriftOptions::default(),
-                max_age: std::time::Duration::from_secs_f64(max_age_s),
-                until_alarm,
-                duration: duration_s.map(std::time::Duration::from_secs_f64),
-                state_dir,
-            };
-            let outcome = b2b_services::watch::watch_command(
-                &result,
-                zenoh.as_deref(),
-                &opts,
-                &recorder,
-                &stop_flag(),
-            );
-            finish_recording(recorder);
-            Ok(outcome?)
-        }
-        Command::History {
-            robot,
-            json,
-            state_dir,
-        } => Ok(history::print_listing(&state_dir, robot.as_deref(), json)?),
-        Command::Pki {
-            command:
-                PkiCommand::Init {
-                    dir,
-                    robots,
-                    listen,
-                    connect,
-                },
+            listen,
+            connect,
         } => {
             let endpoints =
                 b2b_services::pki::Endpoints::new(&listen, connect.as_deref().unwrap_or(&listen))?;
@@ -700,9 +746,7 @@ fn main() -> std::process::ExitCode {
             print_issued(&issued, &dir);
             Ok(())
         }
-        Command::Pki {
-            command: PkiCommand::Add { dir, robot },
-        } => {
+        PkiCommand::Add { dir, robot } => {
             let issued = b2b_services::pki::add(&dir, &robot)?;
             print_issued(&issued, &dir);
             println!(
@@ -710,9 +754,7 @@ fn main() -> std::process::ExitCode {
             );
             Ok(())
         }
-        Command::Pki {
-            command: PkiCommand::Revoke { dir, robot },
-        } => {
+        PkiCommand::Revoke { dir, robot } => {
             let issued = b2b_services::pki::revoke(&dir, &robot)?;
             print_issued(&issued, &dir);
             println!(
@@ -723,6 +765,21 @@ fn main() -> std::process::ExitCode {
             );
             Ok(())
         }
+    }
+}
+
+fn main() -> std::process::ExitCode {
+    init_logging();
+    let cli = Cli::parse();
+    run_main::<anyhow::Error>(|| match cli.command {
+        Command::Run(args) => run(args),
+        Command::Calibrate(args) => calibrate(args),
+        Command::Verify(args) => verify(args),
+        Command::Import(args) => import(args),
+        Command::Report(args) => report(args),
+        Command::Watch(args) => watch(args),
+        Command::History(args) => list_history(args),
+        Command::Pki { command } => pki(command),
     })
 }
 
