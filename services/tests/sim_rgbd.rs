@@ -110,7 +110,7 @@ fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
     // within 1.5x.
     assert!(mean_mm <= 1.2, "touch mean {mean_mm} mm");
     // The covariance is honest live too: the truth inside its 99.9% ellipsoid
-    // (below 22.46 for 6 dof). README: Mahalanobis² 9.8-10.4 in three runs (the
+    // (below 22.46 for 6 dof). README: Mahalanobis² 9.8-10.7 in four runs (the
     // error is mostly the arms' DH errors at the same views, so it changes little
     // between runs), asserted within 1.5x of the largest; before the live
     // hand-eyes carried the arms' systematic error, as offline, 25-34. The 25
@@ -130,6 +130,6 @@ fn two_simulated_rgbd_carts_give_a_verified_rgbd_result() {
         result.predicted_touch_error_m.p95 * 1e3
     );
     assert!(m2 < common::CHI2_6_999, "the truth at Mahalanobis² {m2}");
-    assert!(m2 < 1.5 * 10.4, "the truth at Mahalanobis² {m2}");
+    assert!(m2 < 1.5 * 10.7, "the truth at Mahalanobis² {m2}");
     assert!(inside >= 0.88 / 1.5, "only {:.0}% inside", inside * 100.0);
 }
