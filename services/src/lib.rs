@@ -11,6 +11,7 @@ pub mod error;
 pub mod history;
 pub mod live;
 pub mod outputs;
+pub mod ports;
 pub mod recording;
 pub mod setup;
 pub mod sim_cart;

@@ -11,7 +11,7 @@
 //! the reason; the routine stops when the hand-eye covariance is below the bound.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use b2b_calib::camera::CameraModel;
 use b2b_pipeline::Observation;
@@ -21,6 +21,7 @@ use kuka_fri::{FriClient, SafetyGuard, SessionState};
 use nalgebra::{Isometry3, Point2, Point3};
 
 use crate::agent::{CaptureSource, Progress, SourceCapture};
+use crate::ports::{ArmPort, Clock, SystemClock};
 use crate::{Result, ServiceError};
 use b2b_routine::plan::{
     Plan, PlanConfig, PlanScene, Viewpoint, leg_is_safe, plan_viewpoints, reach, recentre,
@@ -226,10 +227,12 @@ pub fn looks_for_target(observe: WatchObserve, missing: usize) -> bool {
 /// (at 5 Hz: once a second, so a target put back is seen within a second).
 pub const LOOK_EVERY_WHEN_GONE: usize = 5;
 
-/// The live source.
-pub struct LiveSource {
+/// The live source: the arm behind the port `A` (the FRI client in production),
+/// its waits and timings on the clock `C` (the host's).
+pub struct LiveSource<A = FriClient, C = SystemClock> {
     cfg: LiveConfig,
-    fri: FriClient,
+    fri: A,
+    clock: C,
     frames: Box<dyn FrameSource>,
     arm: Arm,
     guard: SafetyGuard,
@@ -247,7 +250,7 @@ pub struct LiveSource {
     timings: LiveTimings,
 }
 
-impl std::fmt::Debug for LiveSource {
+impl<A, C> std::fmt::Debug for LiveSource<A, C> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("LiveSource")
             .field("robot", &self.cfg.robot)
@@ -256,22 +259,32 @@ impl std::fmt::Debug for LiveSource {
     }
 }
 
-fn now_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-impl LiveSource {
-    /// Connects: waits for the FRI session to reach COMMANDING_ACTIVE (the robot
-    /// application's overlay) and for the first frame.
+impl<A: ArmPort> LiveSource<A> {
+    /// Connects: waits for the arm's first measured joints (the session reaches
+    /// COMMANDING_ACTIVE, the robot application's overlay, before the first
+    /// motion). Waits and timings on the host's clock.
     pub fn connect(
         cfg: LiveConfig,
-        fri: FriClient,
+        fri: A,
+        frames: Box<dyn FrameSource>,
+        arm: Arm,
+        guard: SafetyGuard,
+        target: LiveTarget,
+    ) -> Result<Self> {
+        Self::connect_with_clock(cfg, fri, SystemClock, frames, arm, guard, target)
+    }
+}
+
+impl<A: ArmPort, C: Clock> LiveSource<A, C> {
+    /// [`LiveSource::connect`] with the waits and timings on `clock`.
+    pub fn connect_with_clock(
+        cfg: LiveConfig,
+        fri: A,
+        clock: C,
         frames: Box<dyn FrameSource>,
         arm: Arm,
         guard: SafetyGuard,
@@ -285,6 +298,7 @@ impl LiveSource {
         Ok(LiveSource {
             cfg,
             fri,
+            clock,
             frames,
             arm,
             guard,
@@ -299,6 +313,11 @@ impl LiveSource {
         })
     }
 
+    /// The time since `t` on the source's clock.
+    fn since(&self, t: Instant) -> Duration {
+        self.clock.now().saturating_duration_since(t)
+    }
+
     /// The measured joints now.
     fn measured(&self) -> Result<Joints> {
         Ok(self
@@ -310,29 +329,29 @@ impl LiveSource {
 
     /// Waits until the arm is still; returns the host time it was found still.
     fn wait_still(&self) -> Result<u64> {
-        let deadline = Instant::now() + self.cfg.settle_timeout;
+        let deadline = self.clock.now() + self.cfg.settle_timeout;
         loop {
             if self
                 .fri
                 .is_still(self.cfg.still_window, self.cfg.still_tol_rad)
             {
-                return Ok(now_ns());
+                return Ok(self.clock.now_ns());
             }
-            if Instant::now() >= deadline {
+            if self.clock.now() >= deadline {
                 return Err(ServiceError::NotAtRest {
                     waited: self.cfg.settle_timeout,
                 });
             }
-            std::thread::sleep(Duration::from_millis(10));
+            self.clock.sleep(Duration::from_millis(10));
         }
     }
 
     /// Still arm, then a frame exposed after it, then the arm checked still again.
     fn still_frame(&mut self) -> Result<(LiveFrame, Joints, f64)> {
         let still_at = self.wait_still()?;
-        let waited = Instant::now();
+        let waited = self.clock.now();
         let frame = self.frames.frame_after(still_at, self.cfg.frame_timeout)?;
-        self.timings.frame_wait_ms += ms(waited.elapsed());
+        self.timings.frame_wait_ms += ms(self.since(waited));
         self.still_through(frame)
     }
 
@@ -385,14 +404,14 @@ impl LiveSource {
     }
 
     fn move_to(&mut self, q: Joints) -> Result<()> {
-        let started = Instant::now();
+        let started = self.clock.now();
         if self.fri.state() != SessionState::CommandingActive {
             self.fri
                 .wait_for_state(SessionState::CommandingActive, Duration::from_secs(10))
                 .map_err(|e| ServiceError::NotCommanding(Box::new(e)))?;
         }
         let r = self.fri.move_to(q).map_err(ServiceError::from);
-        self.timings.motion_ms += ms(started.elapsed());
+        self.timings.motion_ms += ms(self.since(started));
         r
     }
 
@@ -430,7 +449,7 @@ impl LiveSource {
                 ),
             }
         }
-        let started = Instant::now();
+        let started = self.clock.now();
         let camera = frame.camera.clone();
         let board = self
             .routine
@@ -451,7 +470,7 @@ impl LiveSource {
             ..self.cfg.plan.clone()
         };
         let plan = plan_viewpoints(&scene, &q, &cfg)?;
-        self.timings.plan_ms += ms(started.elapsed());
+        self.timings.plan_ms += ms(self.since(started));
         if plan.viewpoints.is_empty() {
             return Err(ServiceError::NoSafeViewpoint {
                 dropped: plan.dropped,
@@ -495,7 +514,7 @@ impl LiveSource {
         // Frames in a row without the target.
         let mut missing = 0usize;
         while !stop.load(Ordering::SeqCst) {
-            let started = Instant::now();
+            let started = self.clock.now();
             row += 1;
             match self.watch_frame(after_ns) {
                 Ok((frame, q, t)) => {
@@ -534,13 +553,13 @@ impl LiveSource {
                     );
                     // Whatever went wrong (the arm pushed, the camera late),
                     // only frames exposed from now on count.
-                    after_ns = after_ns.max(now_ns());
+                    after_ns = after_ns.max(self.clock.now_ns());
                 }
             }
-            while started.elapsed() < period && !stop.load(Ordering::SeqCst) {
-                std::thread::sleep(
+            while self.since(started) < period && !stop.load(Ordering::SeqCst) {
+                self.clock.sleep(
                     period
-                        .saturating_sub(started.elapsed())
+                        .saturating_sub(self.since(started))
                         .min(Duration::from_millis(50)),
                 );
             }
@@ -624,7 +643,7 @@ impl LiveSource {
                     Err(e) => VisitEvent::NoFrame(b2b_pipeline::error_chain(&e)),
                 },
                 VisitAction::Recentre { centre_in_camera } => {
-                    let started = Instant::now();
+                    let started = self.clock.now();
                     let (capture, q, _) = last.as_ref().ok_or(ServiceError::NoFrame {
                         step: "re-centring",
                     })?;
@@ -634,7 +653,7 @@ impl LiveSource {
                         q,
                         &centre_in_camera,
                     );
-                    self.timings.decide_ms += ms(started.elapsed());
+                    self.timings.decide_ms += ms(self.since(started));
                     VisitEvent::Recentred(result)
                 }
                 VisitAction::Deliver => {
@@ -666,9 +685,9 @@ impl LiveSource {
                     });
                 }
             };
-            let started = Instant::now();
+            let started = self.clock.now();
             action = self.routine.step_visit(&mut visit, event, &status);
-            self.timings.decide_ms += ms(started.elapsed());
+            self.timings.decide_ms += ms(self.since(started));
         }
     }
 
@@ -684,12 +703,12 @@ impl LiveSource {
     ) -> (SourceCapture, View) {
         let camera = &frame.camera;
         let base_from_flange = self.arm.fk(q);
-        let detect_started = Instant::now();
+        let detect_started = self.clock.now();
         let expected = self.expected_view(&base_from_flange, Some(progress));
         let (observed, sharpness) =
             self.target
                 .observe(&self.cfg.robot, frame, base_from_flange, &expected, row);
-        self.timings.detect_ms += ms(detect_started.elapsed());
+        self.timings.detect_ms += ms(self.since(detect_started));
         let board = match &observed {
             Ok(o) => {
                 let n = o.board.pixels.len().max(1) as f64;
@@ -750,7 +769,7 @@ impl LiveSource {
     /// them).
     fn features(&mut self, frame: &LiveFrame) -> Option<b2b_protocol::messages::FeatureSet> {
         let (options, (depth, unit)) = self.cfg.features.as_ref().zip(frame.depth.as_ref())?;
-        let started = Instant::now();
+        let started = self.clock.now();
         let features = frame_features(frame, depth, *unit, options)
             .map_err(|e| {
                 tracing::warn!(
@@ -760,7 +779,7 @@ impl LiveSource {
                 )
             })
             .ok();
-        self.timings.detect_ms += ms(started.elapsed());
+        self.timings.detect_ms += ms(self.since(started));
         features
     }
 
@@ -805,6 +824,13 @@ impl LiveSource {
         self.timings
     }
 
+    /// The arm port (the FRI client, for shutdown).
+    pub fn into_arm(self) -> A {
+        self.fri
+    }
+}
+
+impl<C> LiveSource<FriClient, C> {
     /// The FRI client (for shutdown).
     pub fn into_fri(self) -> FriClient {
         self.fri
@@ -820,7 +846,7 @@ fn status(progress: &Progress) -> Status<'_> {
     }
 }
 
-impl CaptureSource for LiveSource {
+impl<A: ArmPort, C: Clock> CaptureSource for LiveSource<A, C> {
     fn describe(&self) -> String {
         match self.cfg.mode {
             Mode::Program => format!("{}: visiting the planned viewpoints", self.cfg.robot),
