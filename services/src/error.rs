@@ -320,6 +320,63 @@ pub enum ServiceError {
         source: serde_json::Error,
     },
 
+    // The camera process (`camera`).
+    #[error("--fps must be a number >= 0")]
+    CameraFps { fps: f64 },
+    #[error("no source: give --replay DIR or --realsense")]
+    NoCameraSource,
+    #[error(
+        "this camera was built without RealSense support: install librealsense2 (see the README) and rebuild with `cargo build -p b2b-services --features realsense`"
+    )]
+    NoRealSenseSupport,
+    #[error("cannot load {}", dir.display())]
+    LoadDataset {
+        dir: PathBuf,
+        #[source]
+        source: Box<b2b_dataset::DatasetError>,
+    },
+    #[error("{}: no robot {robot}", dir.display())]
+    NoReplayRobot { dir: PathBuf, robot: String },
+    #[error("robot {robot} is not in the dataset")]
+    RobotNotInManifest { robot: String },
+    #[error("{}: robot {robot} has no images to replay", dir.display())]
+    NoImagesToReplay { dir: PathBuf, robot: String },
+    #[error(
+        "{}: robot {robot}: distortion has {count} coefficients; frames carry k1 k2 p1 p2 k3 only",
+        manifest.display()
+    )]
+    TooManyDistortionCoefficients {
+        manifest: PathBuf,
+        robot: String,
+        count: usize,
+    },
+    #[error(
+        "{}: {}x{} image, but the manifest's camera is {}x{}",
+        path.display(),
+        size.0,
+        size.1,
+        manifest.0,
+        manifest.1
+    )]
+    ImageNotManifestSize {
+        path: PathBuf,
+        size: (u32, u32),
+        manifest: (u32, u32),
+    },
+    #[error("the dataset has depth images but no depth_unit_m")]
+    NoDatasetDepthUnit,
+    #[error("{}: a 16-bit image in the image column", path.display())]
+    DepthInImageColumn { path: PathBuf },
+    #[error(
+        "{}: a depth image must be a 16-bit grey PNG, this is {}",
+        path.display(),
+        kind.name()
+    )]
+    DepthImageNotZ16 {
+        path: PathBuf,
+        kind: b2b_frames::StreamKind,
+    },
+
     // Recordings.
     #[error("cannot write the recording {}", path.display())]
     RecordingSave {
@@ -440,6 +497,12 @@ mod tests {
                 source: "x".parse::<SocketAddr>().unwrap_err(),
             },
             ServiceError::OwnExecutable(io_error()),
+            ServiceError::LoadDataset {
+                dir: "/nonexistent".into(),
+                source: Box::new(
+                    b2b_dataset::Dataset::load(Path::new("/nonexistent")).unwrap_err(),
+                ),
+            },
             ServiceError::CartStart {
                 exe: "cart".into(),
                 source: io_error(),

@@ -1,11 +1,13 @@
 //! The service binaries' library: the coordinator's journal, the live agent
 //! and coordinator loops on the bus (`b2b-bus`, re-exported as [`bus`]), the
-//! live sources (FRI and iceoryx2, the simulated cart's process), rerun
-//! recordings, and result files and printouts.
+//! live sources (FRI and iceoryx2, the simulated cart's process), the camera
+//! process (replay and RealSense into iceoryx2, [`camera`]), rerun recordings,
+//! and result files and printouts.
 //! What is computed lives in `b2b-pipeline`; this crate wires it to processes,
 //! sockets and files, and the binaries are argument parsing and wiring.
 
 pub mod agent;
+pub mod camera;
 pub mod coordinator;
 pub mod error;
 pub mod history;
