@@ -8,7 +8,7 @@ use std::cell::{Cell, RefCell};
 use std::path::Path;
 use std::rc::Rc;
 use std::sync::atomic::AtomicBool;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use b2b_calib::camera::CameraModel;
 use b2b_robot::{Arm, Joints};
@@ -23,42 +23,9 @@ use b2b_services::ports::{ArmPort, Clock};
 use b2b_services::setup::CellSetup;
 use kuka_fri::{ControllerTime, FriError, JointState, SessionState};
 
-/// Host time of the virtual clock's start, ns since the Unix epoch.
-const EPOCH_NS: u64 = 1_700_000_000_000_000_000;
-
-/// Time that passes only when someone sleeps or waits on it.
-#[derive(Debug, Clone)]
-struct VirtualClock {
-    origin: Instant,
-    elapsed: Rc<Cell<Duration>>,
-}
-
-impl VirtualClock {
-    fn new() -> Self {
-        VirtualClock {
-            origin: Instant::now(),
-            elapsed: Rc::default(),
-        }
-    }
-
-    fn elapsed(&self) -> Duration {
-        self.elapsed.get()
-    }
-}
-
-impl Clock for VirtualClock {
-    fn now(&self) -> Instant {
-        self.origin + self.elapsed.get()
-    }
-
-    fn now_ns(&self) -> u64 {
-        EPOCH_NS + self.elapsed.get().as_nanos() as u64
-    }
-
-    fn sleep(&self, d: Duration) {
-        self.elapsed.set(self.elapsed.get() + d);
-    }
-}
+#[path = "common/virtual_clock.rs"]
+mod virtual_clock;
+use virtual_clock::{EPOCH_NS, VirtualClock};
 
 /// When the fake arm is at rest: from a virtual time on, or never.
 type RestFrom = Rc<Cell<Option<Duration>>>;

@@ -10,7 +10,7 @@ use std::cell::{Cell, RefCell};
 use std::path::{Path, PathBuf};
 use std::rc::Rc;
 use std::sync::atomic::AtomicBool;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use b2b_calib::camera::CameraModel;
 use b2b_robot::{Arm, Joints};
@@ -27,40 +27,11 @@ use kuka_fri::{ControllerTime, FriError, JointState, SessionState};
 use nalgebra::{Isometry3, Point2, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 
+#[path = "common/virtual_clock.rs"]
+mod virtual_clock;
+use virtual_clock::VirtualClock;
+
 type Iso3 = Isometry3<f64>;
-
-/// Host time of the virtual clock's start, ns since the Unix epoch.
-const EPOCH_NS: u64 = 1_700_000_000_000_000_000;
-
-/// Time that passes only when someone sleeps or waits on it.
-#[derive(Debug, Clone)]
-struct VirtualClock {
-    origin: Instant,
-    elapsed: Rc<Cell<Duration>>,
-}
-
-impl VirtualClock {
-    fn new() -> Self {
-        VirtualClock {
-            origin: Instant::now(),
-            elapsed: Rc::default(),
-        }
-    }
-}
-
-impl Clock for VirtualClock {
-    fn now(&self) -> Instant {
-        self.origin + self.elapsed.get()
-    }
-
-    fn now_ns(&self) -> u64 {
-        EPOCH_NS + self.elapsed.get().as_nanos() as u64
-    }
-
-    fn sleep(&self, d: Duration) {
-        self.elapsed.set(self.elapsed.get() + d);
-    }
-}
 
 /// An arm that reaches its commanded joints at once (a little virtual time
 /// passes) and is still whenever asked; the camera reads its joints.
