@@ -11,7 +11,7 @@
 //! the services are where the FRI client is wired, and the robot model below it
 //! knows nothing of FRI.
 
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use b2b_robot::Joints;
 use kuka_fri::{FriClient, FriError, JointState, SessionState};
@@ -82,9 +82,8 @@ impl Clock for SystemClock {
     }
 
     fn now_ns(&self) -> u64 {
-        SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as u64)
+        // The frames' own timebase, so "exposed after" compares like with like.
+        b2b_frames::now_ns()
     }
 
     fn sleep(&self, d: Duration) {
