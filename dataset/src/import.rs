@@ -297,7 +297,7 @@ pub fn add_robot(
     dir: &Path,
     robot: &str,
     target: crate::Target,
-    camera: crate::CameraIntrinsics,
+    camera: crate::Intrinsics,
     captures: Vec<Capture>,
     source: &str,
 ) -> Result<crate::Dataset, DatasetError> {

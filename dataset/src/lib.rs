@@ -37,14 +37,15 @@ use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
 
+pub use b2b_protocol::messages::Intrinsics;
 pub use captures::{
     CAMERA_POSE_COLUMNS, CAPTURE_COLUMNS, Capture, IMAGE_EXTENSIONS, LOCATION_COLUMN, RobotData,
     TOUCH_COLUMNS, TouchPair, read_touch_points,
 };
 pub use error::{DatasetError, Location};
 pub use manifest::{
-    CameraIntrinsics, DIST_LENGTHS, MODELLED_DIST_TERMS, Manifest, RobotManifest, TARGET_KINDS,
-    Target, dictionary_size,
+    DIST_LENGTHS, MODELLED_DIST_TERMS, Manifest, RobotManifest, TARGET_KINDS, Target, camera_model,
+    dictionary_size, intrinsics_of, modelled_dist, validate_camera,
 };
 pub use truth::{
     GroundTruth, Reference, load_ground_truth, load_reference, write_ground_truth, write_reference,

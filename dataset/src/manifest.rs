@@ -15,6 +15,8 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
+use b2b_calib::camera::CameraModel;
+use b2b_protocol::messages::Intrinsics;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{DatasetError, Location};
@@ -80,7 +82,7 @@ pub struct RobotManifest {
     pub id: String,
     /// Left out when intrinsics must be estimated from calibration images.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub camera: Option<CameraIntrinsics>,
+    pub camera: Option<Intrinsics>,
     /// Metres per depth-image unit; required when the robot has depth images.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_unit_m: Option<f64>,
@@ -95,18 +97,6 @@ impl RobotManifest {
             depth_unit_m: None,
         }
     }
-}
-
-/// Pinhole intrinsics with OpenCV distortion `k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraIntrinsics {
-    pub width: u32,
-    pub height: u32,
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub dist: Vec<f64>,
 }
 
 /// Distortion vector lengths OpenCV accepts (12 and 14 with their thin-prism and
@@ -276,7 +266,7 @@ impl Manifest {
                 });
             }
             if let Some(camera) = &robot.camera {
-                camera.validate(|name| field(&format!("camera.{name}")))?;
+                validate_camera(camera, |name| field(&format!("camera.{name}")))?;
             }
             if let Some(unit) = robot.depth_unit_m
                 && !(unit.is_finite() && unit > 0.0)
@@ -510,72 +500,100 @@ impl Target {
     }
 }
 
-impl CameraIntrinsics {
-    /// Range-checks the intrinsics; `at` names a field in errors.
-    pub fn validate(&self, at: impl Fn(&str) -> Location) -> Result<(), DatasetError> {
-        let bad = |name: &str, reason: String| {
-            Err(DatasetError::InvalidCamera {
-                at: at(name),
-                reason,
-            })
-        };
-        if self.width == 0 {
-            return bad("width", "width is 0".into());
-        }
-        if self.height == 0 {
-            return bad("height", "height is 0".into());
-        }
-        for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
-            if !(v.is_finite() && v > 0.0) {
-                return bad(
-                    name,
-                    format!("{name} is {v}; a focal length must be positive"),
-                );
-            }
-        }
-        for (name, v) in [("cx", self.cx), ("cy", self.cy)] {
-            if !v.is_finite() {
-                return bad(name, format!("{name} is {v}"));
-            }
-        }
-        if !DIST_LENGTHS.contains(&self.dist.len()) {
-            return bad(
-                "dist",
-                format!(
-                    "dist has {} entries; OpenCV takes 4, 5, 8, 12 or 14 (k1, k2, p1, p2[, k3[, k4, \
-                     k5, k6[, s1..s4[, tx, ty]]]]; the thin-prism and tilt terms must be 0 here)",
-                    self.dist.len()
-                ),
-            );
-        }
-        if let Some(i) = self.dist.iter().position(|v| !v.is_finite()) {
-            return bad(
-                &format!("dist[{i}]"),
-                format!("dist[{i}] is {}", self.dist[i]),
-            );
-        }
-        // 12 or 14 terms: OpenCV's thin-prism s1..s4 and tilt tx, ty follow k1..k6;
-        // the calibration models k1..k6, so those must be zero (as OpenCV writes
-        // them when they were not fitted).
-        if let Some(i) = (MODELLED_DIST_TERMS..self.dist.len()).find(|&i| self.dist[i] != 0.0) {
-            return bad(
-                &format!("dist[{i}]"),
-                format!(
-                    "dist[{i}] is {}: the thin-prism (s1..s4, dist[8..12]) and tilt (tx, ty, \
-                     dist[12..14]) terms are not modelled; 12 or 14 entries are accepted when \
-                     those are 0, else give 4, 5 or 8 (k1, k2, p1, p2[, k3[, k4, k5, k6]])",
-                    self.dist[i]
-                ),
-            );
-        }
-        Ok(())
+/// Range-checks a `camera` block of `dataset.json`; `at` names a field in errors.
+pub fn validate_camera(
+    camera: &Intrinsics,
+    at: impl Fn(&str) -> Location,
+) -> Result<(), DatasetError> {
+    let bad = |name: &str, reason: String| {
+        Err(DatasetError::InvalidCamera {
+            at: at(name),
+            reason,
+        })
+    };
+    if camera.width == 0 {
+        return bad("width", "width is 0".into());
     }
+    if camera.height == 0 {
+        return bad("height", "height is 0".into());
+    }
+    for (name, v) in [("fx", camera.fx), ("fy", camera.fy)] {
+        if !(v.is_finite() && v > 0.0) {
+            return bad(
+                name,
+                format!("{name} is {v}; a focal length must be positive"),
+            );
+        }
+    }
+    for (name, v) in [("cx", camera.cx), ("cy", camera.cy)] {
+        if !v.is_finite() {
+            return bad(name, format!("{name} is {v}"));
+        }
+    }
+    if !DIST_LENGTHS.contains(&camera.dist.len()) {
+        return bad(
+            "dist",
+            format!(
+                "dist has {} entries; OpenCV takes 4, 5, 8, 12 or 14 (k1, k2, p1, p2[, k3[, k4, \
+                 k5, k6[, s1..s4[, tx, ty]]]]; the thin-prism and tilt terms must be 0 here)",
+                camera.dist.len()
+            ),
+        );
+    }
+    if let Some(i) = camera.dist.iter().position(|v| !v.is_finite()) {
+        return bad(
+            &format!("dist[{i}]"),
+            format!("dist[{i}] is {}", camera.dist[i]),
+        );
+    }
+    // 12 or 14 terms: OpenCV's thin-prism s1..s4 and tilt tx, ty follow k1..k6;
+    // the calibration models k1..k6, so those must be zero (as OpenCV writes
+    // them when they were not fitted).
+    if let Some(i) = (MODELLED_DIST_TERMS..camera.dist.len()).find(|&i| camera.dist[i] != 0.0) {
+        return bad(
+            &format!("dist[{i}]"),
+            format!(
+                "dist[{i}] is {}: the thin-prism (s1..s4, dist[8..12]) and tilt (tx, ty, \
+                 dist[12..14]) terms are not modelled; 12 or 14 entries are accepted when \
+                 those are 0, else give 4, 5 or 8 (k1, k2, p1, p2[, k3[, k4, k5, k6]])",
+                camera.dist[i]
+            ),
+        );
+    }
+    Ok(())
+}
 
-    /// The distortion terms the calibration models (`k1, k2, p1, p2[, k3[, k4,
-    /// k5, k6]]`): at most the first [`MODELLED_DIST_TERMS`]; the thin-prism and
-    /// tilt terms of a 12- or 14-entry `dist` are zero ([`Self::validate`]).
-    pub fn modelled_dist(&self) -> &[f64] {
-        &self.dist[..self.dist.len().min(MODELLED_DIST_TERMS)]
+/// The distortion terms the calibration models (`k1, k2, p1, p2[, k3[, k4, k5,
+/// k6]]`): at most the first [`MODELLED_DIST_TERMS`]; the thin-prism and tilt terms
+/// of a 12- or 14-entry `dist` are zero ([`validate_camera`]).
+pub fn modelled_dist(camera: &Intrinsics) -> &[f64] {
+    &camera.dist[..camera.dist.len().min(MODELLED_DIST_TERMS)]
+}
+
+/// The math core's projection for intrinsics (their modelled terms): the one
+/// place the wire and file form becomes a [`CameraModel`].
+pub fn camera_model(camera: &Intrinsics) -> Result<CameraModel, b2b_calib::CalibError> {
+    CameraModel::new(
+        camera.width,
+        camera.height,
+        [camera.fx, camera.fy, camera.cx, camera.cy],
+        modelled_dist(camera),
+    )
+}
+
+/// The intrinsics of a projection with its first `dist_terms` distortion terms
+/// (5: OpenCV's `k1, k2, p1, p2, k3`; at most 8), not marked estimated: the one
+/// place a [`CameraModel`] becomes the wire and file form.
+pub fn intrinsics_of(camera: &CameraModel, dist_terms: usize) -> Intrinsics {
+    Intrinsics {
+        width: camera.width,
+        height: camera.height,
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        dist: camera.dist[..dist_terms.min(camera.dist.len())].to_vec(),
+        estimated: false,
     }
 }
 

@@ -5,7 +5,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use b2b_dataset::{
-    CameraIntrinsics, Capture, Dataset, DatasetError, GroundTruth, Manifest, Reference, RobotData,
+    Capture, Dataset, DatasetError, GroundTruth, Intrinsics, Manifest, Reference, RobotData,
     RobotManifest, Target, TouchPair, load_ground_truth, load_reference, write_ground_truth,
     write_reference,
 };
@@ -46,7 +46,7 @@ fn targets() -> Vec<Target> {
 
 fn dataset(target: Target) -> Dataset {
     let mut robot1 = RobotManifest::new("robot1");
-    robot1.camera = Some(CameraIntrinsics {
+    robot1.camera = Some(Intrinsics {
         width: 1280,
         height: 720,
         fx: 910.123456789,
@@ -54,6 +54,7 @@ fn dataset(target: Target) -> Dataset {
         cx: 640.5,
         cy: 359.25,
         dist: vec![0.1, -0.25, 1e-4, -2e-5, 0.0125, 0.0, -0.0, 3e-300],
+        estimated: false,
     });
     robot1.depth_unit_m = Some(0.001);
     let mut manifest = Manifest::new(

@@ -512,15 +512,7 @@ fn camera_of(ds: &Dataset, robot: &str) -> Result<Option<CameraModel>, PipelineE
         .ok_or_else(|| unknown_robot(ds, robot))?;
     m.camera
         .as_ref()
-        .map(|c| {
-            CameraModel::new(
-                c.width,
-                c.height,
-                [c.fx, c.fy, c.cx, c.cy],
-                c.modelled_dist(),
-            )
-            .map_err(calib(robot))
-        })
+        .map(|c| b2b_dataset::camera_model(c).map_err(calib(robot)))
         .transpose()
 }
 

@@ -179,7 +179,8 @@ fn tilted_symmetric_board_is_decided_between_robots_by_gravity() {
 /// repeatability but no DH errors, so the covariance must hold the truth.
 #[test]
 fn far_upright_symmetric_board_without_intrinsics() {
-    use b2b_sim::scene::{BoardSpec, CameraSpec, PoseSpec};
+    use b2b_dataset::Intrinsics;
+    use b2b_sim::scene::{BoardSpec, PoseSpec};
     let scene_file = bundled("sim-checkerboard-2x12").join("scene.json");
     let mut scene = b2b_sim::scene::Scene::load(&scene_file).unwrap();
     scene.board = Some(BoardSpec {
@@ -193,7 +194,7 @@ fn far_upright_symmetric_board_without_intrinsics() {
         },
     });
     for robot in &mut scene.robots {
-        robot.camera = CameraSpec {
+        robot.camera = Intrinsics {
             width: 1280,
             height: 720,
             fx: 912.3,
@@ -201,6 +202,7 @@ fn far_upright_symmetric_board_without_intrinsics() {
             cx: 641.2,
             cy: 362.5,
             dist: vec![0.0; 5],
+            estimated: false,
         };
         robot.error.dh.length_m = 0.0;
         robot.error.dh.angle_rad = 0.0;

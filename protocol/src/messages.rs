@@ -257,7 +257,12 @@ fn finite(field: &str, values: &[f64]) -> Result<(), ProtocolError> {
     Ok(())
 }
 
-/// Camera intrinsics with OpenCV distortion `k1, k2, p1, p2[, k3[, k4, k5, k6]]`.
+/// Camera intrinsics with OpenCV distortion `k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[,
+/// tx, ty]]]]`: the project's one intrinsics type, in every message, in
+/// `dataset.json`'s `camera` blocks and in the simulator's scenes. Each place checks
+/// what it accepts (a message at most 8 terms, [`Validate`]; a dataset 4, 5, 8, 12 or
+/// 14, `b2b_dataset::validate_camera`), and `b2b_dataset::camera_model` builds the math
+/// core's projection from it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
     pub width: u32,
@@ -266,6 +271,8 @@ pub struct Intrinsics {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
+    /// Missing in a file: none given (a dataset rejects that by name).
+    #[serde(default)]
     pub dist: Vec<f64>,
     /// The camera gave no intrinsics: these are the agent's provisional estimate
     /// from its captures so far (a guess before the first fit), used for its own

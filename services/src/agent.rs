@@ -269,20 +269,6 @@ impl CaptureSource for ReplaySource {
     }
 }
 
-/// The wire form of a camera model (the five OpenCV distortion terms).
-pub fn intrinsics(c: &b2b_calib::camera::CameraModel) -> Intrinsics {
-    Intrinsics {
-        width: c.width,
-        height: c.height,
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        dist: c.dist[..5].to_vec(),
-        estimated: false,
-    }
-}
-
 fn board_observation(
     o: &Observation,
     target_centre: &nalgebra::Point3<f64>,
@@ -683,7 +669,7 @@ fn capture_message(cap: &SourceCapture) -> Capture {
         base_from_flange: Pose::from_isometry(&cap.base_from_flange),
         camera: Intrinsics {
             estimated: cap.intrinsics_estimated,
-            ..intrinsics(&cap.camera)
+            ..b2b_dataset::intrinsics_of(&cap.camera, 5)
         },
         observation,
         rejected,
@@ -855,7 +841,7 @@ impl CaptureLoop {
             if let Err(e) = opts.rerun.log_hand_eye(
                 b2b_viz::Base::One,
                 &he.estimate.flange_from_camera,
-                &intrinsics(&cap.camera),
+                &b2b_dataset::intrinsics_of(&cap.camera, 5),
             ) {
                 tracing::warn!("rerun: {}", error_chain(&e));
             }

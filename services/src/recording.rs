@@ -90,7 +90,7 @@ pub fn log_robot_captures(
     if !rec.is_enabled() {
         return;
     }
-    let intr = crate::agent::intrinsics(&obs.camera);
+    let intr = b2b_dataset::intrinsics_of(&obs.camera, 5);
     let robot = obs.robot.as_str();
     let image_of = |row: usize| -> Option<b2b_vision::GrayImage> {
         let capture = ds.robot(robot)?.captures.iter().find(|c| c.row == row)?;

@@ -19,6 +19,7 @@ use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use b2b_dataset::Intrinsics;
 use b2b_dataset::{Dataset, load_ground_truth};
 use b2b_frames::{FrameHeader, FrameSubscriber, Stream, StreamKind, service_name_in};
 use b2b_sim::d435::{D435, D435Frame, Timing};
@@ -26,7 +27,7 @@ use b2b_sim::generate::{GenerateOptions, generate_scene, scene_geometry};
 use b2b_sim::image_io::{write_depth, write_rgb};
 use b2b_sim::render::{RenderSettings, SceneGeometry};
 use b2b_sim::robot_error::RobotErrorModel;
-use b2b_sim::scene::{CameraSpec, Scene};
+use b2b_sim::scene::Scene;
 use b2b_sim::sensor::{DepthImage, DepthModel, RgbImage};
 use b2b_sim::texture::{Checkerboard, NoiseTexture, Texture, Uniform};
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -548,14 +549,9 @@ fn the_rgbd_method_calibrates_from_played_back_frames() {
     };
     let c = camera.colour.clone();
     for r in &mut scene.robots {
-        r.camera = CameraSpec {
-            width: c.width,
-            height: c.height,
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
+        r.camera = Intrinsics {
             dist: vec![0.0; 5],
+            ..b2b_dataset::intrinsics_of(&c, 5)
         };
         r.reported_camera = None;
         // Exact arms: the flange poses are where the cameras were, so what

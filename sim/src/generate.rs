@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use b2b_dataset::{
-    CameraIntrinsics, Capture, Dataset, GroundTruth, Manifest, RobotData, RobotManifest, TouchPair,
+    Capture, Dataset, GroundTruth, Intrinsics, Manifest, RobotData, RobotManifest, TouchPair,
 };
 use b2b_robot::{Arm, IkOptions};
 use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
@@ -415,18 +415,13 @@ pub fn generate_scene(
         let c = spec.reported_camera.as_ref().unwrap_or(&spec.camera);
         robots_manifest.push(RobotManifest {
             id: spec.id.clone(),
-            camera: spec.reports_intrinsics.then(|| CameraIntrinsics {
-                width: c.width,
-                height: c.height,
-                fx: c.fx,
-                fy: c.fy,
-                cx: c.cx,
-                cy: c.cy,
+            camera: spec.reports_intrinsics.then(|| Intrinsics {
                 dist: if c.dist.len() >= 4 {
                     c.dist.clone()
                 } else {
                     vec![0.0; 5]
                 },
+                ..c.clone()
             }),
             depth_unit_m: scene.depth.map(|d| d.unit_m),
         });

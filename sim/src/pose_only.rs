@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use b2b_calib::synth::{SynthConfig, TwoTargets, two_targets};
-use b2b_dataset::{CameraIntrinsics, Capture, Dataset, Manifest, RobotData, RobotManifest, Target};
+use b2b_dataset::{Capture, Dataset, Manifest, RobotData, RobotManifest, Target};
 
 use crate::SimError;
 
@@ -26,16 +26,7 @@ pub fn write_two_targets(dir: &Path, seed: u64, linked: bool) -> Result<TwoTarge
         inner_corners: [cfg.board_cols as u32, cfg.board_rows as u32],
         square_m: cfg.square_m,
     };
-    let c = &cfg.camera;
-    let camera = CameraIntrinsics {
-        width: c.width,
-        height: c.height,
-        fx: c.fx,
-        fy: c.fy,
-        cx: c.cx,
-        cy: c.cy,
-        dist: vec![0.0; 5],
-    };
+    let camera = b2b_dataset::intrinsics_of(&cfg.camera, 5);
     let ids = ["robot1", "robot2", "robot3"];
     let mut manifest = Manifest::new(
         "synth-two-targets",

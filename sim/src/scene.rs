@@ -11,6 +11,7 @@
 
 use std::path::{Path, PathBuf};
 
+use b2b_dataset::Intrinsics;
 use b2b_robot::IiwaModel;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
@@ -160,34 +161,23 @@ pub enum MultimarkerLayout {
     },
 }
 
-/// Camera intrinsics, OpenCV model.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CameraSpec {
-    pub width: u32,
-    pub height: u32,
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    /// `k1, k2, p1, p2[, k3]`.
-    #[serde(default)]
-    pub dist: Vec<f64>,
-}
-
 /// One cart.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RobotSpec {
     pub id: String,
     pub model: IiwaModel,
-    pub camera: CameraSpec,
+    /// The camera's true intrinsics (`k1, k2, p1, p2[, k3]`); unknown fields are an
+    /// error, as everywhere in a scene.
+    #[serde(deserialize_with = "strict_intrinsics")]
+    pub camera: Intrinsics,
     /// What the camera's own calibration says (a RealSense's factory intrinsics),
     /// when that is not the truth: the cart publishes it with every frame and
     /// `sim generate` writes it into `dataset.json`; the images are rendered through
     /// `camera`. Absent: the camera reports the truth.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub reported_camera: Option<CameraSpec>,
+    #[serde(deserialize_with = "strict_reported")]
+    pub reported_camera: Option<Intrinsics>,
     /// `false`: the camera reports no intrinsics at all (a camera without a
     /// factory calibration): the cart publishes frames without them and `sim
     /// generate` leaves the robot's `camera` block out of `dataset.json`.
@@ -792,7 +782,7 @@ impl Scene {
     }
 }
 
-fn camera_model(c: &CameraSpec) -> Result<b2b_calib::camera::CameraModel, SimError> {
+fn camera_model(c: &Intrinsics) -> Result<b2b_calib::camera::CameraModel, SimError> {
     if c.width == 0 || c.height == 0 || c.width > 8192 || c.height > 8192 {
         return Err(SimError::invalid(
             "camera",
@@ -805,12 +795,28 @@ fn camera_model(c: &CameraSpec) -> Result<b2b_calib::camera::CameraModel, SimErr
             "dist takes at most k1, k2, p1, p2, k3",
         ));
     }
-    Ok(b2b_calib::camera::CameraModel::new(
-        c.width,
-        c.height,
-        [c.fx, c.fy, c.cx, c.cy],
-        &c.dist,
-    )?)
+    Ok(b2b_dataset::camera_model(c)?)
+}
+
+/// The fields a scene's camera block may have.
+const CAMERA_FIELDS: [&str; 7] = ["width", "height", "fx", "fy", "cx", "cy", "dist"];
+
+/// A scene's camera block: the one intrinsics type, read strictly (an unknown
+/// field, a misspelt `dist`, is an error as everywhere in a scene).
+fn strict_intrinsics<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Intrinsics, D::Error> {
+    use serde::de::Error;
+    let value = serde_json::Value::deserialize(d)?;
+    if let Some(field) = value
+        .as_object()
+        .and_then(|map| map.keys().find(|k| !CAMERA_FIELDS.contains(&k.as_str())))
+    {
+        return Err(D::Error::unknown_field(field, &CAMERA_FIELDS));
+    }
+    serde_json::from_value(value).map_err(D::Error::custom)
+}
+
+fn strict_reported<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Intrinsics>, D::Error> {
+    strict_intrinsics(d).map(Some)
 }
 
 #[cfg(test)]
@@ -828,6 +834,29 @@ mod tests {
     #[test]
     fn the_committed_scene_parses() {
         Scene::parse(&example(), Path::new("scene.json")).unwrap();
+    }
+
+    /// A scene's camera block is the one intrinsics type read strictly: a misspelt
+    /// field is named, not ignored (which would render without its distortion).
+    #[test]
+    fn a_misspelt_camera_field_is_named() {
+        let mut json: serde_json::Value = serde_json::from_str(&example()).unwrap();
+        let camera = &mut json["robots"][0]["camera"];
+        let dist = camera["dist"].take();
+        camera.as_object_mut().unwrap().remove("dist");
+        camera["dsit"] = dist;
+        let e = Scene::parse(&json.to_string(), Path::new("scene.json")).unwrap_err();
+        assert!(e.to_string().contains("unknown field `dsit`"), "{e}");
+        // The reported camera too.
+        let mut json: serde_json::Value = serde_json::from_str(&example()).unwrap();
+        let mut reported = json["robots"][0]["camera"].clone();
+        reported["estimated"] = true.into();
+        json["robots"][0]["reported_camera"] = reported;
+        let e = Scene::parse(&json.to_string(), Path::new("scene.json")).unwrap_err();
+        assert!(e.to_string().contains("unknown field `estimated`"), "{e}");
+        // Left out: the truth is reported.
+        let scene = Scene::parse(&example(), Path::new("scene.json")).unwrap();
+        assert!(scene.robots[0].reported_camera.is_none() || example().contains("reported_camera"));
     }
 
     /// The example with a third robot, a copy of the first with the base `base` (JSON).

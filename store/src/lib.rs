@@ -11,7 +11,6 @@ use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
-use b2b_calib::camera::CameraModel;
 use b2b_calib::refine::BoardCapture;
 use b2b_pipeline::{Observation, RobotObservations};
 use b2b_protocol::RejectedCapture;
@@ -644,8 +643,8 @@ impl Store {
             robot: robot.to_owned(),
         })?;
         let c = &first.camera;
-        let camera = CameraModel::new(c.width, c.height, [c.fx, c.fy, c.cx, c.cy], &c.dist)
-            .map_err(|source| StoreError::Camera {
+        let camera =
+            b2b_dataset::camera_model(&first.camera).map_err(|source| StoreError::Camera {
                 robot: robot.to_owned(),
                 source,
             })?;

@@ -13,7 +13,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use b2b_dataset::{CameraIntrinsics, Target};
+use b2b_dataset::Target;
 use b2b_services::{init_logging, run_main, write_json};
 use b2b_vision::intrinsics::{CalibrationTarget, IntrinsicsOptions, calibrate_intrinsics_from_dir};
 use b2b_vision::multimarker::MultimarkerConfig;
@@ -260,18 +260,7 @@ fn intrinsics(args: IntrinsicsArgs) -> anyhow::Result<()> {
         c.cy,
         r.dist5()
     );
-    write_json(
-        &out,
-        &CameraIntrinsics {
-            width: c.width,
-            height: c.height,
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-            dist: r.dist5().to_vec(),
-        },
-    )?;
+    write_json(&out, &b2b_dataset::intrinsics_of(&r.camera, 5))?;
     Ok(())
 }
 
