@@ -5,8 +5,9 @@
 //! the live services go through the same code. The stages:
 //!
 //! 1. [`observe_robot`]: per capture, detect the target (vision crate: checkerboard,
-//!    ChArUco, ArUco grid or multimarker, [`TargetSpec`]), fit its pose, and pair
-//!    the corners seen (3-D target points + pixels) with the flange pose; failures
+//!    ChArUco, ArUco grid or multimarker, the one [`b2b_vision::Target`] made from
+//!    `dataset.json` by [`target_from_manifest`]), fit its pose, and pair the
+//!    corners seen (3-D target points + pixels) with the flange pose; failures
 //!    become rejected captures with a reason, never silent drops. A checkerboard that
 //!    looks the same turned (odd x odd squares, square boards) gets each capture's
 //!    labelling from the robot's motion ([`observe_robot`], see "Symmetric targets").
@@ -69,14 +70,14 @@ use b2b_calib::symmetry::{
     GravityOptions, LabellingOptions, TargetSymmetry, resolve_between_robots, resolve_labelling,
 };
 use b2b_calib::{CalibError, Iso3};
-use b2b_dataset::{Dataset, DatasetError, Target, TouchPair};
+use b2b_dataset::{Dataset, DatasetError, TouchPair};
 use b2b_protocol::{
     CalibrationResult, CaptureResidual, CaptureSummary, HANDEYE_FORMAT, HandEyeResult, Pose,
     PredictedError, RESULT_FORMAT, RejectedCapture, Timings, VerifyReport,
 };
 use b2b_vision::{
     ArucoGridSpec, BoardDetection, CharucoSpec, CheckerboardSpec, DistortionTerms, GrayImage,
-    IntrinsicsOptions, MarkerDictionary, MultimarkerConfig, PoseEstimate, VisionError,
+    IntrinsicsOptions, MarkerDictionary, MultimarkerConfig, Target, VisionError,
 };
 use nalgebra::{Matrix6, Point3};
 
@@ -516,274 +517,96 @@ fn camera_of(ds: &Dataset, robot: &str) -> Result<Option<CameraModel>, PipelineE
         .transpose()
 }
 
-/// The dataset's target, ready for detection.
-#[derive(Debug, Clone)]
-pub enum TargetSpec {
-    Checkerboard(CheckerboardSpec),
-    Charuco(CharucoSpec),
-    ArucoGrid(ArucoGridSpec),
-    /// An ARToolKit-style multimarker set (its file already read) and the dictionary
-    /// its barcode ids belong to.
-    Multimarker {
-        config: MultimarkerConfig,
-        dictionary: MarkerDictionary,
-    },
+/// The target of a dataset ([`Dataset::manifest`]'s `target`); a multimarker file
+/// is read from the dataset folder.
+pub fn target_of(ds: &Dataset) -> Result<Target, PipelineError> {
+    target_from_manifest(&ds.manifest.target, &ds.root.join("dataset.json"))
 }
 
-impl TargetSpec {
-    /// The target of a dataset; a multimarker file is read from the dataset folder.
-    pub fn from_dataset(ds: &Dataset) -> Result<Self, PipelineError> {
-        Self::from_manifest(&ds.manifest.target, &ds.root.join("dataset.json"))
-    }
+/// Every target of a dataset, in [`Dataset::all_targets`] order (the manifest's
+/// `target` first).
+pub fn targets_of(ds: &Dataset) -> Result<Vec<Target>, PipelineError> {
+    let manifest = ds.root.join("dataset.json");
+    ds.all_targets()
+        .into_iter()
+        .map(|(_, t)| target_from_manifest(t, &manifest))
+        .collect()
+}
 
-    /// Every target of a dataset, in [`Dataset::all_targets`] order (the
-    /// manifest's `target` first).
-    pub fn all_from_dataset(ds: &Dataset) -> Result<Vec<Self>, PipelineError> {
-        let manifest = ds.root.join("dataset.json");
-        ds.all_targets()
-            .into_iter()
-            .map(|(_, t)| Self::from_manifest(t, &manifest))
-            .collect()
-    }
-
-    /// A target as `dataset.json` describes it (the same JSON in a live agent's
-    /// setup file), read from `manifest`: a multimarker file's relative path is
-    /// taken from the folder of `manifest`, which errors also name.
-    pub fn from_manifest(target: &Target, manifest: &Path) -> Result<Self, PipelineError> {
-        let root = manifest.parent().unwrap_or(Path::new("."));
-        let bad = |source: VisionError| PipelineError::InvalidTarget {
-            manifest: manifest.to_owned(),
-            source,
-        };
-        let spec = match target {
-            Target::Checkerboard {
-                inner_corners,
-                square_m,
-            } => {
-                let spec = CheckerboardSpec {
-                    cols: inner_corners[0] as usize,
-                    rows: inner_corners[1] as usize,
-                    square_m: *square_m,
-                };
-                spec.validate().map_err(bad)?;
-                TargetSpec::Checkerboard(spec)
-            }
-            Target::Charuco {
-                squares,
-                square_m,
-                marker_m,
-                dictionary,
-            } => {
-                let spec = CharucoSpec {
-                    squares: [squares[0] as usize, squares[1] as usize],
-                    square_m: *square_m,
-                    marker_m: *marker_m,
-                    dictionary: dictionary.clone(),
-                };
-                spec.validate().map_err(bad)?;
-                TargetSpec::Charuco(spec)
-            }
-            Target::ArucoGrid {
-                markers,
-                marker_m,
-                separation_m,
-                dictionary,
-                first_id,
-            } => {
-                let spec = ArucoGridSpec {
-                    markers: [markers[0] as usize, markers[1] as usize],
-                    marker_m: *marker_m,
-                    separation_m: *separation_m,
-                    dictionary: dictionary.clone(),
-                    first_id: *first_id as usize,
-                };
-                spec.validate().map_err(bad)?;
-                TargetSpec::ArucoGrid(spec)
-            }
-            Target::Multimarker { config, dictionary } => {
-                let dictionary = MarkerDictionary::parse(dictionary).map_err(bad)?;
-                let path = if config.is_absolute() {
-                    config.clone()
-                } else {
-                    root.join(config)
-                };
-                let config = MultimarkerConfig::load(&path)?;
-                config.check_dictionary(&dictionary)?;
-                causes::check_multimarker_units(&config, &path)?;
-                TargetSpec::Multimarker { config, dictionary }
-            }
-        };
-        Ok(spec)
-    }
-
-    /// Every point of the target (corners by id), in the target frame.
-    pub fn all_points(&self) -> Vec<Point3<f64>> {
-        match self {
-            TargetSpec::Checkerboard(s) => {
-                (0..s.corner_count()).map(|k| s.target_point(k)).collect()
-            }
-            TargetSpec::Charuco(s) => (0..s.corner_count()).map(|k| s.target_point(k)).collect(),
-            TargetSpec::ArucoGrid(s) => (0..4 * s.marker_count())
-                .map(|k| s.target_point(k))
-                .collect(),
-            TargetSpec::Multimarker { config, .. } => {
-                config.markers.iter().flat_map(|m| m.corners()).collect()
-            }
-        }
-    }
-
-    /// The direction (target frame, unit) from the target towards where it is seen
-    /// from: a board's printed side faces -z of its frame (z points into it); a
-    /// multimarker set is seen along the mean of its markers' outward normals (+z
-    /// of each marker, ARToolKit's convention): +z of a planar sheet, the middle of
-    /// a three-face corner's view.
-    pub fn view_axis(&self) -> nalgebra::Vector3<f64> {
-        let minus_z = -nalgebra::Vector3::z();
-        match self {
-            TargetSpec::Multimarker { config, .. } => {
-                let sum: nalgebra::Vector3<f64> = config
-                    .markers
-                    .iter()
-                    .map(|m| m.set_from_marker.rotation * nalgebra::Vector3::z())
-                    .sum();
-                sum.try_normalize(1e-9).unwrap_or(nalgebra::Vector3::z())
-            }
-            _ => minus_z,
-        }
-    }
-
-    /// The centroid of [`TargetSpec::all_points`].
-    pub fn centre(&self) -> Point3<f64> {
-        let pts = self.all_points();
-        Point3::from(
-            pts.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / pts.len().max(1) as f64,
-        )
-    }
-
-    /// The labellings of the target that no image can tell apart (only the identity
-    /// unless it is a checkerboard with `cols + rows` even).
-    pub fn symmetry(&self) -> TargetSymmetry {
-        match self {
-            TargetSpec::Checkerboard(s) => s.symmetry(),
-            _ => TargetSymmetry::trivial(self.all_points().len()),
-        }
-    }
-
-    /// The target for messages ("8x6 checkerboard (inner corners; 9x7 squares)").
-    pub fn describe(&self) -> String {
-        match self {
-            TargetSpec::Checkerboard(s) => format!(
-                "{}x{} checkerboard (inner corners; {}x{} squares)",
-                s.cols,
-                s.rows,
-                s.cols + 1,
-                s.rows + 1
-            ),
-            TargetSpec::Charuco(s) => format!("{}x{} ChArUco board", s.squares[0], s.squares[1]),
-            TargetSpec::ArucoGrid(s) => {
-                format!("{}x{} ArUco grid", s.markers[0], s.markers[1])
-            }
-            TargetSpec::Multimarker { config, .. } => {
-                format!("multimarker set of {} markers", config.markers.len())
-            }
-        }
-    }
-
-    /// Whether this is a board (checkerboard, ChArUco, ArUco grid) rather than a
-    /// multimarker set.
-    pub fn is_board(&self) -> bool {
-        !matches!(self, TargetSpec::Multimarker { .. })
-    }
-
-    /// Finds the target in an image and fits `camera_from_target`: the corners seen
-    /// (target points and pixels) and the pose with its residuals.
-    /// A symmetric checkerboard is refused ([`VisionError::AmbiguousOrientation`]);
-    /// [`TargetSpec::detect_up_to_symmetry`] returns it in some labelling.
-    pub fn detect(
-        &self,
-        img: &b2b_vision::GrayImage,
-        camera: &CameraModel,
-    ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
-        self.detect_impl(img, camera, false)
-    }
-
-    /// [`TargetSpec::detect`], but a symmetric checkerboard comes back in one of the
-    /// labellings of [`TargetSpec::symmetry`], which the caller must resolve.
-    pub fn detect_up_to_symmetry(
-        &self,
-        img: &b2b_vision::GrayImage,
-        camera: &CameraModel,
-    ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
-        self.detect_impl(img, camera, true)
-    }
-
-    fn detect_impl(
-        &self,
-        img: &b2b_vision::GrayImage,
-        camera: &CameraModel,
-        up_to_symmetry: bool,
-    ) -> Result<(BoardDetection, PoseEstimate), VisionError> {
-        // A multimarker set's detector fits its own pose (over every marker seen);
-        // boards go through the one corner detection and PnP.
-        if let TargetSpec::Multimarker { config, dictionary } = self {
-            let m = b2b_vision::detect_multimarker(img, config, dictionary, camera)?;
-            let pose = PoseEstimate {
-                camera_from_target: m.camera_from_target,
-                residuals_px: m.residuals_px,
-                rms_px: m.rms_px,
+/// A target as `dataset.json` describes it (the same JSON in a live agent's setup
+/// file, or the block `b2b-vision-tool` prints), read from `manifest`: the sizes
+/// validated, a multimarker file read (its relative path taken from the folder of
+/// `manifest`, which errors also name) and checked against its dictionary and for
+/// millimetres given as metres.
+pub fn target_from_manifest(
+    target: &b2b_dataset::Target,
+    manifest: &Path,
+) -> Result<Target, PipelineError> {
+    use b2b_dataset::Target as File;
+    let root = manifest.parent().unwrap_or(Path::new("."));
+    let bad = |source: VisionError| PipelineError::InvalidTarget {
+        manifest: manifest.to_owned(),
+        source,
+    };
+    let spec = match target {
+        File::Checkerboard {
+            inner_corners,
+            square_m,
+        } => {
+            let spec = CheckerboardSpec {
+                cols: inner_corners[0] as usize,
+                rows: inner_corners[1] as usize,
+                square_m: *square_m,
             };
-            return Ok((m.detection, pose));
+            spec.validate().map_err(bad)?;
+            Target::Checkerboard(spec)
         }
-        let det = self.detect_corners_impl(img, camera, up_to_symmetry)?;
-        let pose = b2b_vision::board_pose(&det, camera)?;
-        Ok((det, pose))
-    }
-
-    /// Finds the target's corners in an image. `camera` may be a rough guess: the
-    /// checkerboard and ArUco grid detectors do not use it, ChArUco uses it to
-    /// predict corners from the markers (then snaps them to the image), and a
-    /// multimarker set's corners are the markers' own.
-    pub fn detect_corners(
-        &self,
-        img: &b2b_vision::GrayImage,
-        camera: &CameraModel,
-    ) -> Result<BoardDetection, VisionError> {
-        self.detect_corners_impl(img, camera, false)
-    }
-
-    fn detect_corners_impl(
-        &self,
-        img: &b2b_vision::GrayImage,
-        camera: &CameraModel,
-        up_to_symmetry: bool,
-    ) -> Result<BoardDetection, VisionError> {
-        match self {
-            TargetSpec::Checkerboard(s) if up_to_symmetry => {
-                b2b_vision::detect_checkerboard_up_to_symmetry(img, s).map(|(det, _)| det)
-            }
-            TargetSpec::Checkerboard(s) => b2b_vision::detect_checkerboard(img, s),
-            TargetSpec::Charuco(s) => b2b_vision::detect_charuco(img, s, camera),
-            TargetSpec::ArucoGrid(s) => b2b_vision::detect_aruco_grid(img, s),
-            TargetSpec::Multimarker { config, dictionary } => {
-                b2b_vision::detect_multimarker(img, config, dictionary, camera).map(|m| m.detection)
-            }
+        File::Charuco {
+            squares,
+            square_m,
+            marker_m,
+            dictionary,
+        } => {
+            let spec = CharucoSpec {
+                squares: [squares[0] as usize, squares[1] as usize],
+                square_m: *square_m,
+                marker_m: *marker_m,
+                dictionary: dictionary.clone(),
+            };
+            spec.validate().map_err(bad)?;
+            Target::Charuco(spec)
         }
-    }
-
-    /// `camera_from_target` of corners found by [`TargetSpec::detect_corners`].
-    pub fn pose(
-        &self,
-        det: &BoardDetection,
-        camera: &CameraModel,
-    ) -> Result<PoseEstimate, VisionError> {
-        match self {
-            TargetSpec::Multimarker { .. } => {
-                b2b_vision::multimarker_pose(&det.target_points, &det.pixels, camera)
-                    .map(|(pose, _)| pose)
-            }
-            _ => b2b_vision::board_pose(det, camera),
+        File::ArucoGrid {
+            markers,
+            marker_m,
+            separation_m,
+            dictionary,
+            first_id,
+        } => {
+            let spec = ArucoGridSpec {
+                markers: [markers[0] as usize, markers[1] as usize],
+                marker_m: *marker_m,
+                separation_m: *separation_m,
+                dictionary: dictionary.clone(),
+                first_id: *first_id as usize,
+            };
+            spec.validate().map_err(bad)?;
+            Target::ArucoGrid(spec)
         }
-    }
+        File::Multimarker { config, dictionary } => {
+            let dictionary = MarkerDictionary::parse(dictionary).map_err(bad)?;
+            let path = if config.is_absolute() {
+                config.clone()
+            } else {
+                root.join(config)
+            };
+            let config = MultimarkerConfig::load(&path)?;
+            config.check_dictionary(&dictionary)?;
+            causes::check_multimarker_units(&config, &path)?;
+            Target::Multimarker { config, dictionary }
+        }
+    };
+    Ok(spec)
 }
 
 /// What the detector needs to know about one robot of a dataset.
@@ -792,11 +615,11 @@ pub struct RobotSetup {
     pub robot: String,
     pub camera: CameraModel,
     /// The dataset's `target`.
-    pub target: TargetSpec,
+    pub target: Target,
     board_points: Vec<Point3<f64>>,
     /// The dataset's further `targets` and their points, in
     /// [`Dataset::all_targets`] order after the first.
-    others: Vec<(TargetSpec, Vec<Point3<f64>>)>,
+    others: Vec<(Target, Vec<Point3<f64>>)>,
 }
 
 impl RobotSetup {
@@ -807,7 +630,7 @@ impl RobotSetup {
             robot: robot.to_owned(),
             manifest: ds.root.join("dataset.json"),
         })?;
-        let mut targets = TargetSpec::all_from_dataset(ds)?.into_iter();
+        let mut targets = targets_of(ds)?.into_iter();
         let target = targets
             .next()
             .ok_or_else(|| PipelineError::Unsupported("a dataset without a target".into()))?;
@@ -827,7 +650,7 @@ impl RobotSetup {
     }
 
     /// Target `index` ([`Dataset::target_index`]) and its points.
-    pub fn target_at(&self, index: usize) -> (&TargetSpec, &[Point3<f64>]) {
+    pub fn target_at(&self, index: usize) -> (&Target, &[Point3<f64>]) {
         match index.checked_sub(1).and_then(|k| self.others.get(k)) {
             Some((t, points)) => (t, points),
             None => (&self.target, &self.board_points),
@@ -920,15 +743,19 @@ fn observe_capture_impl(
 /// a dataset) and the live agent (each still frame) both observe through this.
 /// `row` is 0 and `image` `None`: the caller names the capture. With
 /// `up_to_symmetry`, a symmetric target comes back in one of the labellings of
-/// [`TargetSpec::symmetry`], which the caller resolves.
+/// [`Target::symmetry`], which the caller resolves.
 pub fn observe(
     img: &b2b_vision::GrayImage,
     camera: &CameraModel,
-    target: &TargetSpec,
+    target: &Target,
     base_from_flange: Iso3,
     up_to_symmetry: bool,
 ) -> Result<Observation, VisionError> {
-    let (detection, pose) = target.detect_impl(img, camera, up_to_symmetry)?;
+    let (detection, pose) = if up_to_symmetry {
+        target.detect_up_to_symmetry(img, camera)?
+    } else {
+        target.detect(img, camera)?
+    };
     Ok(Observation {
         row: 0,
         image: None,
@@ -968,7 +795,7 @@ pub fn observe_robot(ds: &Dataset, robot: &str) -> Result<RobotObservations, Pip
                 cap.target.as_deref().unwrap_or_default()
             )));
         }
-        let obs = observe_uncalibrated(ds, robot, TargetSpec::from_dataset(ds)?, start)?;
+        let obs = observe_uncalibrated(ds, robot, target_of(ds)?, start)?;
         return screen_observations(&obs, &captures.display().to_string()).map(|(o, _)| o);
     }
     let setup = RobotSetup::from_dataset(ds, robot)?;
@@ -1459,7 +1286,7 @@ pub fn refit_poses(obs: RobotObservations, camera: CameraModel, which: &str) -> 
 fn observe_uncalibrated(
     ds: &Dataset,
     robot: &str,
-    target: TargetSpec,
+    target: Target,
     start: Instant,
 ) -> Result<RobotObservations, PipelineError> {
     let data = ds.robot(robot).ok_or_else(|| unknown_robot(ds, robot))?;
@@ -1467,7 +1294,7 @@ fn observe_uncalibrated(
         robot: robot.to_owned(),
         reason,
     };
-    let redetect = matches!(target, TargetSpec::Charuco(_));
+    let redetect = matches!(target, Target::Charuco(_));
     let mut rejected = Vec::new();
     let mut found: Vec<(&b2b_dataset::Capture, Option<GrayImage>, BoardDetection)> = Vec::new();
     let mut guess: Option<CameraModel> = None;
@@ -1525,7 +1352,7 @@ fn observe_uncalibrated(
         }
         // A symmetric board's labelling does not matter to the intrinsics (each
         // view has its own pose); it is chosen from the robot's motion below.
-        match target.detect_corners_impl(&img, &g, true) {
+        match target.detect_corners_up_to_symmetry(&img, &g) {
             Ok(det) => found.push((cap, redetect.then_some(img), det)),
             Err(e) => reject(error_chain(&e)),
         }
@@ -1718,7 +1545,7 @@ fn resolve_symmetric_labelling(
 /// Makes robot 2's labelling of a symmetric target agree with robot 1's by gravity
 /// (both bases upright), or refuses; see the crate docs, "Symmetric targets".
 fn align_symmetric_between_robots(
-    target: &TargetSpec,
+    target: &Target,
     symmetry: &TargetSymmetry,
     obs1: &RobotObservations,
     obs2: &mut RobotObservations,
@@ -1969,9 +1796,9 @@ impl B2bMethod {
     }
 
     /// The default for a dataset's target kind (shared/interfaces.md).
-    pub fn default_for(target: &Target) -> B2bMethod {
+    pub fn default_for(target: &b2b_dataset::Target) -> B2bMethod {
         match target {
-            Target::Multimarker { .. } => B2bMethod::Multimarker,
+            b2b_dataset::Target::Multimarker { .. } => B2bMethod::Multimarker,
             _ => B2bMethod::Board,
         }
     }
@@ -2117,7 +1944,7 @@ pub fn base_to_base_run(
     options: &RefineOptions,
 ) -> Result<CalibrationRun, PipelineError> {
     let start = Instant::now();
-    let target = TargetSpec::from_dataset(ds)?;
+    let target = target_of(ds)?;
     match (method, target.is_board()) {
         (B2bMethod::Board, true) | (B2bMethod::Multimarker, false) => {}
         (B2bMethod::Board, false) => {

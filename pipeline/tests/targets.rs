@@ -5,7 +5,9 @@
 use b2b_calib::pose::pose_distance;
 use b2b_calib::refine::RefineOptions;
 use b2b_dataset::{Dataset, load_ground_truth};
-use b2b_pipeline::{B2bMethod, PipelineError, TargetSpec, base_to_base, observe_robot};
+use b2b_pipeline::{
+    B2bMethod, PipelineError, base_to_base, observe_robot, target_from_manifest, target_of,
+};
 
 mod common;
 use common::*;
@@ -109,7 +111,7 @@ fn a_missing_or_malformed_multimarker_file_is_named() {
     }
     std::fs::write(dir.join("multimarker.dat"), "12\n00\n40\n1 0 0 0\n").unwrap();
     let ds = Dataset::load(&dir).unwrap();
-    let msg = TargetSpec::from_dataset(&ds).unwrap_err().to_string();
+    let msg = target_of(&ds).unwrap_err().to_string();
     assert!(msg.contains("multimarker.dat:4:"), "{msg}");
     let msg = observe_robot(&ds, "robot1").unwrap_err().to_string();
     assert!(msg.contains("multimarker.dat:4:"), "{msg}");
@@ -118,8 +120,40 @@ fn a_missing_or_malformed_multimarker_file_is_named() {
         // The dataset validator may refuse a missing file itself.
         Err(e) => assert!(e.to_string().contains("multimarker.dat"), "{e}"),
         Ok(ds) => {
-            let msg = TargetSpec::from_dataset(&ds).unwrap_err().to_string();
+            let msg = target_of(&ds).unwrap_err().to_string();
             assert!(msg.contains("multimarker.dat"), "{msg}");
         }
+    }
+}
+
+/// The simulator plans its views from its own renderable (`b2b_sim::target::TargetModel`,
+/// which links no OpenCV); the target it writes into `dataset.json`, read into the one
+/// `b2b_vision::Target`, must have the same centre and view axis, for every committed
+/// scene.
+#[test]
+fn the_simulators_target_agrees_with_the_one_target_model() {
+    let datasets = bundled("");
+    let mut scenes: Vec<_> = std::fs::read_dir(&datasets)
+        .unwrap()
+        .filter_map(|e| Some(e.ok()?.path().join("scene.json")))
+        .filter(|f| f.is_file())
+        .collect();
+    scenes.sort();
+    assert!(scenes.len() >= 5, "{scenes:?}");
+    for file in scenes {
+        let scene = b2b_sim::scene::Scene::load(&file).unwrap();
+        let (model, _) = scene.target_model(&file).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        for (path, text) in &model.files {
+            std::fs::write(dir.path().join(path), text).unwrap();
+        }
+        let target =
+            target_from_manifest(&model.manifest, &dir.path().join("dataset.json")).unwrap();
+        let name = file.display();
+        assert_eq!(target.kind(), model.manifest.kind(), "{name}");
+        let centre = (target.centre() - model.centre).norm();
+        assert!(centre < 1e-6, "{name}: centres {centre} m apart");
+        let axis = (target.view_axis() - model.view_axis).norm();
+        assert!(axis < 1e-9, "{name}: view axes {axis} apart");
     }
 }

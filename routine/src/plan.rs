@@ -114,7 +114,7 @@ pub struct PlanScene<'a> {
     /// The target's points in its own frame (corners).
     pub target_points: &'a [Point3<f64>],
     /// Unit direction (target frame) from the target towards where it is seen
-    /// from (`b2b_pipeline::TargetSpec::view_axis`: -z for a board).
+    /// from (`b2b_vision::Target::view_axis`: -z for a board).
     pub view_axis: Vector3<f64>,
 }
 

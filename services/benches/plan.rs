@@ -24,7 +24,7 @@ fn bench(c: &mut Criterion) {
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/fixtures/setup-robot1.json"),
     )
     .unwrap();
-    let target = setup.target_spec().unwrap();
+    let target = setup.read_target().unwrap();
     let points = target.all_points();
     let arm = Arm::new(setup.model);
     let guard = setup.guard().unwrap();

@@ -27,6 +27,7 @@ use b2b_routine::plan::{
     Plan, PlanConfig, PlanScene, Viewpoint, leg_is_safe, plan_viewpoints, reach, recentre,
 };
 use b2b_routine::{BoardInImage, Mode, Routine, Status, Step, View, VisitAction, VisitEvent};
+use b2b_vision::Target;
 
 type Iso3 = Isometry3<f64>;
 
@@ -66,101 +67,78 @@ pub trait FrameSource {
 /// looks the same turned by 180° are 180° apart.
 pub const PRIOR_LABELLING_MAX_RAD: f64 = std::f64::consts::FRAC_PI_4;
 
-/// The calibration target as the agent knows it (configuration, not truth): the
-/// pipeline's one target model, and its points.
-#[derive(Debug, Clone)]
-pub struct LiveTarget {
-    pub spec: b2b_pipeline::TargetSpec,
-    pub points: Vec<Point3<f64>>,
-}
-
-impl LiveTarget {
-    pub fn new(spec: b2b_pipeline::TargetSpec) -> Self {
-        LiveTarget {
-            points: spec.all_points(),
-            spec,
-        }
-    }
-
-    /// The board centre every message and plan uses ([`b2b_pipeline::TargetSpec::centre`]).
-    pub fn centre(&self) -> Point3<f64> {
-        self.spec.centre()
-    }
-
-    /// Detects the target in a frame and fits its pose, or says why not.
-    ///
-    /// A target with a symmetry (a checkerboard with `cols + rows` even) is
-    /// labelled by `expected_camera_from_target`, where the agent believes the
-    /// board is in this view (the setup sheet's board through the mount's
-    /// drawing, then the board as the captures so far placed it): the labelling
-    /// within [`PRIOR_LABELLING_MAX_RAD`] of it, or the capture is rejected
-    /// with the reason. Every capture of one agent is thereby labelled alike.
-    pub fn observe(
-        &self,
-        robot: &str,
-        frame: &LiveFrame,
-        base_from_flange: Iso3,
-        expected_camera_from_target: &Iso3,
-        row: usize,
-    ) -> (Result<Observation, RejectedCapture>, Option<f64>) {
-        let name = format!("frame {}", frame.number);
-        let reject = |reason: String| RejectedCapture {
-            robot: robot.to_owned(),
-            image: Some(name.clone()),
-            row: Some(row),
-            reason,
-        };
-        let img = match b2b_vision::GrayImage::from_raw(
-            frame.camera.width,
-            frame.camera.height,
-            &frame.grey,
-        ) {
+/// Detects the target (the agent's configuration, not truth) in a frame and fits its
+/// pose, or says why not.
+///
+/// A target with a symmetry (a checkerboard with `cols + rows` even) is
+/// labelled by `expected_camera_from_target`, where the agent believes the
+/// board is in this view (the setup sheet's board through the mount's
+/// drawing, then the board as the captures so far placed it): the labelling
+/// within [`PRIOR_LABELLING_MAX_RAD`] of it, or the capture is rejected
+/// with the reason. Every capture of one agent is thereby labelled alike.
+fn observe_target(
+    target: &Target,
+    robot: &str,
+    frame: &LiveFrame,
+    base_from_flange: Iso3,
+    expected_camera_from_target: &Iso3,
+    row: usize,
+) -> (Result<Observation, RejectedCapture>, Option<f64>) {
+    let name = format!("frame {}", frame.number);
+    let reject = |reason: String| RejectedCapture {
+        robot: robot.to_owned(),
+        image: Some(name.clone()),
+        row: Some(row),
+        reason,
+    };
+    let img =
+        match b2b_vision::GrayImage::from_raw(frame.camera.width, frame.camera.height, &frame.grey)
+        {
             Ok(i) => i,
             Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), None),
         };
-        let sharpness = img.laplacian_variance().ok();
-        let symmetry = self.spec.symmetry();
-        let mut o = match b2b_pipeline::observe(
-            &img,
-            &frame.camera,
-            &self.spec,
-            base_from_flange,
-            !symmetry.is_trivial(),
-        ) {
-            Ok(o) => Observation {
-                row,
-                image: Some(name.clone()),
-                ..o
-            },
-            Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
-        };
-        if !symmetry.is_trivial() {
-            let l = symmetry.label_by_prior(
-                &o.camera_from_target,
-                expected_camera_from_target,
-                PRIOR_LABELLING_MAX_RAD,
-            );
-            let Some(k) = l.element else {
-                return (
-                    Err(reject(format!(
-                        "{} looks the same turned, and where the board is believed to be cannot \
+    let sharpness = img.laplacian_variance().ok();
+    let symmetry = target.symmetry();
+    let mut o = match b2b_pipeline::observe(
+        &img,
+        &frame.camera,
+        target,
+        base_from_flange,
+        !symmetry.is_trivial(),
+    ) {
+        Ok(o) => Observation {
+            row,
+            image: Some(name.clone()),
+            ..o
+        },
+        Err(e) => return (Err(reject(b2b_pipeline::error_chain(&e))), sharpness),
+    };
+    if !symmetry.is_trivial() {
+        let l = symmetry.label_by_prior(
+            &o.camera_from_target,
+            expected_camera_from_target,
+            PRIOR_LABELLING_MAX_RAD,
+        );
+        let Some(k) = l.element else {
+            return (
+                Err(reject(format!(
+                    "{} looks the same turned, and where the board is believed to be cannot \
                          tell which way: the nearest labelling is {:.0}° from it, the next {:.0}° \
                          (needs within {:.0}° and {:.0}° apart; check T_base_target_approx in the \
                          setup)",
-                        self.spec.describe(),
-                        l.best_rad.to_degrees(),
-                        l.runner_up_rad.to_degrees(),
-                        PRIOR_LABELLING_MAX_RAD.to_degrees(),
-                        PRIOR_LABELLING_MAX_RAD.to_degrees(),
-                    ))),
-                    sharpness,
-                );
-            };
-            o.camera_from_target = symmetry.relabel_pose(&o.camera_from_target, k);
-            o.board.target_points = symmetry.relabel_points(&o.board.target_points, k);
-        }
-        (Ok(o), sharpness)
+                    target.describe(),
+                    l.best_rad.to_degrees(),
+                    l.runner_up_rad.to_degrees(),
+                    PRIOR_LABELLING_MAX_RAD.to_degrees(),
+                    PRIOR_LABELLING_MAX_RAD.to_degrees(),
+                ))),
+                sharpness,
+            );
+        };
+        o.camera_from_target = symmetry.relabel_pose(&o.camera_from_target, k);
+        o.board.target_points = symmetry.relabel_points(&o.board.target_points, k);
     }
+    (Ok(o), sharpness)
 }
 
 /// Settings of a live source.
@@ -236,7 +214,10 @@ pub struct LiveSource<A = FriClient, C = SystemClock> {
     frames: Box<dyn FrameSource>,
     arm: Arm,
     guard: SafetyGuard,
-    target: LiveTarget,
+    /// The target as the agent knows it (configuration, not truth).
+    target: Target,
+    /// Its points, for planning.
+    target_points: Vec<Point3<f64>>,
     camera: Option<CameraModel>,
     /// The camera gives no intrinsics (known from the first frame).
     camera_estimated: bool,
@@ -273,7 +254,7 @@ impl<A: ArmPort> LiveSource<A> {
         frames: Box<dyn FrameSource>,
         arm: Arm,
         guard: SafetyGuard,
-        target: LiveTarget,
+        target: Target,
     ) -> Result<Self> {
         Self::connect_with_clock(cfg, fri, SystemClock, frames, arm, guard, target)
     }
@@ -288,7 +269,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         frames: Box<dyn FrameSource>,
         arm: Arm,
         guard: SafetyGuard,
-        target: LiveTarget,
+        target: Target,
     ) -> Result<Self> {
         fri.wait_for_joints(Duration::from_secs(15))
             .map_err(|e| ServiceError::NoJointState {
@@ -302,6 +283,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
             frames,
             arm,
             guard,
+            target_points: target.all_points(),
             target,
             camera: None,
             camera_estimated: false,
@@ -435,9 +417,14 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         let base_from_flange = self.arm.fk(&q);
         if first_view {
             let expected = self.expected_view(&base_from_flange, None);
-            let (observed, _) =
-                self.target
-                    .observe(&self.cfg.robot, &frame, base_from_flange, &expected, 0);
+            let (observed, _) = observe_target(
+                &self.target,
+                &self.cfg.robot,
+                &frame,
+                base_from_flange,
+                &expected,
+                0,
+            );
             match observed {
                 Ok(o) => self
                     .routine
@@ -461,8 +448,8 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
             camera: &camera,
             base_from_target: board,
             flange_from_camera: self.cfg.mount_approx,
-            target_points: &self.target.points,
-            view_axis: self.target.spec.view_axis(),
+            target_points: &self.target_points,
+            view_axis: self.target.view_axis(),
         };
         let cfg = PlanConfig {
             count,
@@ -705,9 +692,14 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         let base_from_flange = self.arm.fk(q);
         let detect_started = self.clock.now();
         let expected = self.expected_view(&base_from_flange, Some(progress));
-        let (observed, sharpness) =
-            self.target
-                .observe(&self.cfg.robot, frame, base_from_flange, &expected, row);
+        let (observed, sharpness) = observe_target(
+            &self.target,
+            &self.cfg.robot,
+            frame,
+            base_from_flange,
+            &expected,
+            row,
+        );
         self.timings.detect_ms += ms(self.since(detect_started));
         let board = match &observed {
             Ok(o) => {
@@ -799,8 +791,8 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
             camera,
             base_from_target: self.cfg.board_approx,
             flange_from_camera: self.cfg.mount_approx,
-            target_points: &self.target.points,
-            view_axis: self.target.spec.view_axis(),
+            target_points: &self.target_points,
+            view_axis: self.target.view_axis(),
         };
         match reach(&scene, &wanted, q) {
             Ok((q_new, _))

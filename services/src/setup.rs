@@ -11,7 +11,6 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use b2b_dataset::Target;
-use b2b_pipeline::TargetSpec;
 use b2b_protocol::Pose;
 use b2b_robot::{Arm, IiwaModel, WorkspaceBox};
 use kuka_fri::{FriClient, FriClientConfig, SafetyGuard};
@@ -19,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use b2b_routine::Mode;
 
-use crate::live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource, LiveTarget};
+use crate::live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource};
 use crate::{Result, ServiceError};
 use b2b_routine::plan::PlanConfig;
 
@@ -81,14 +80,17 @@ impl CellSetup {
         Ok(setup)
     }
 
-    /// The target as the pipeline knows it (one model for datasets and live
-    /// agents). A target with a symmetry (a checkerboard with `cols + rows`
-    /// even) is labelled capture by capture from `T_base_target_approx`
-    /// ([`crate::live::LiveTarget::observe`]): for such a board the setup sheet
-    /// must also say which corner is the origin, and both carts' sheets the
-    /// same corner.
-    pub fn target_spec(&self) -> Result<TargetSpec> {
-        Ok(TargetSpec::from_manifest(&self.target, &self.source)?)
+    /// The target, read as a dataset's is ([`b2b_pipeline::target_from_manifest`]:
+    /// one model for datasets and live agents). A target with a symmetry (a
+    /// checkerboard with `cols + rows` even) is labelled capture by capture from
+    /// `T_base_target_approx` (the live source's detection): for such a board the
+    /// setup sheet must also say which corner is the origin, and both carts' sheets
+    /// the same corner.
+    pub fn read_target(&self) -> Result<b2b_vision::Target> {
+        Ok(b2b_pipeline::target_from_manifest(
+            &self.target,
+            &self.source,
+        )?)
     }
 
     /// Refuses a setup that cannot be used (bad poses, target, margin or speed).
@@ -98,7 +100,7 @@ impl CellSetup {
         self.flange_from_camera_approx
             .to_isometry("T_flange_camera_approx")?;
         WorkspaceBox::new(self.workspace_min, self.workspace_max)?;
-        TargetSpec::from_manifest(&self.target, &self.source)
+        b2b_pipeline::target_from_manifest(&self.target, &self.source)
             .map_err(|e| ServiceError::SetupTarget(Box::new(e)))?;
         if !(self.joint_margin_rad.is_finite() && (0.0..0.5).contains(&self.joint_margin_rad)) {
             return Err(ServiceError::JointMargin {
@@ -152,7 +154,7 @@ pub fn live_source(
     frames: Box<dyn FrameSource>,
     features: Option<b2b_pipeline::rgbd::RgbdOptions>,
 ) -> Result<LiveSource> {
-    let target = LiveTarget::new(setup.target_spec()?);
+    let target = setup.read_target()?;
     let cfg = LiveConfig {
         robot: robot.to_owned(),
         mode,

@@ -16,9 +16,7 @@ use b2b_routine::Mode;
 use b2b_routine::plan::PlanConfig;
 use b2b_services::ServiceError;
 use b2b_services::agent::{CaptureSource, Progress};
-use b2b_services::live::{
-    FrameSource, LiveConfig, LiveFrame, LiveSource, LiveTarget, WatchObserve,
-};
+use b2b_services::live::{FrameSource, LiveConfig, LiveFrame, LiveSource, WatchObserve};
 use b2b_services::ports::{ArmPort, Clock};
 use b2b_services::setup::CellSetup;
 use kuka_fri::{ControllerTime, FriError, JointState, SessionState};
@@ -229,7 +227,7 @@ fn source(
         Box::new(frames),
         Arm::new(setup.model),
         setup.guard().unwrap(),
-        LiveTarget::new(setup.target_spec().unwrap()),
+        setup.read_target().unwrap(),
     )
 }
 

@@ -17,7 +17,7 @@ use b2b_robot::{Arm, Joints};
 use b2b_routine::plan::PlanConfig;
 use b2b_routine::{MAX_TRIES, Mode, OFF_CENTRE_FRACTION, RoutineConfig};
 use b2b_services::agent::{CaptureSource, Progress, SourceCapture};
-use b2b_services::live::{FrameSource, LiveConfig, LiveFrame, LiveSource, LiveTarget};
+use b2b_services::live::{FrameSource, LiveConfig, LiveFrame, LiveSource};
 use b2b_services::ports::{ArmPort, Clock};
 use b2b_services::setup::CellSetup;
 use b2b_sim::render::{RenderSettings, Renderer};
@@ -194,7 +194,7 @@ impl Rig {
         )
         .unwrap();
         let board_approx = setup.base_from_target_approx.to_isometry("board").unwrap() * board_off;
-        let target = LiveTarget::new(setup.target_spec().unwrap());
+        let target = setup.read_target().unwrap();
         let (with_board, _, base_from_target) =
             b2b_sim::generate::scene_geometry(&scene, &file).unwrap();
         let without_board =

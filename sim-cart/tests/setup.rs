@@ -28,7 +28,7 @@ fn the_derived_setup_is_near_the_truth_but_never_it() {
     let setup = b2b_services::setup::CellSetup::load(&file).unwrap();
     // This scene renders no depth, and the setup says so.
     assert!(!setup.depth);
-    setup.target_spec().unwrap();
+    setup.read_target().unwrap();
     setup.guard().unwrap();
     // The board is off by a setup sheet's error: about 2 cm and 4°, not zero.
     let s = b2b_sim::scene::Scene::load(&scene("sim-checkerboard-2x12")).unwrap();

@@ -9,7 +9,7 @@ use std::hint::black_box;
 use b2b_calib::camera::CameraModel;
 use b2b_sim::Iso3;
 use b2b_sim::render::{Lighting, Optics, RenderSettings, Renderer, SceneGeometry};
-use b2b_sim::scene::TargetSpec;
+use b2b_sim::scene::SceneTarget;
 use b2b_sim::sensor::{DepthModel, SensorNoise, expose};
 use b2b_sim::target::TargetModel;
 use b2b_sim::texture::{Checkerboard, NoiseTexture, Texture, Uniform};
@@ -60,7 +60,7 @@ fn bench(c: &mut Criterion) {
     });
 
     // The same view of a 7x5 ChArUco board (40 mm squares): many more edges.
-    let charuco: TargetSpec = serde_json::from_str(
+    let charuco: SceneTarget = serde_json::from_str(
         r#"{"kind": "charuco", "squares": [7, 5], "square_m": 0.04, "marker_m": 0.028,
             "dictionary": "DICT_5X5_100", "base1_from_target": {"t": [0, 0, 0]}}"#,
     )

@@ -71,7 +71,8 @@ impl PoseSpec {
     }
 }
 
-/// The checkerboard on the table.
+/// The checkerboard on the table: the printed sheet the scene places (its margin and
+/// `T_base1_target`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BoardSpec {
@@ -94,12 +95,15 @@ fn default_marker_margin() -> f64 {
     0.01
 }
 
-/// A marker target on the table (instead of `board`). The JSON tag is `kind`, as in
-/// `dataset.json`'s `target`; frames are those of shared/dataset-format.md (ChArUco and
-/// grid: OpenCV's, z into the board) and notes/marker-convention.md (multimarker).
+/// A marker target on the table (instead of `board`): the physical object the scene
+/// places (its print margin and `T_base1_target`), not another target model; the
+/// generator writes what `dataset.json` says of it ([`crate::target::TargetModel`]'s
+/// `manifest`). The JSON tag is `kind`, as in `dataset.json`'s `target`; frames are
+/// those of shared/dataset-format.md (ChArUco and grid: OpenCV's, z into the board)
+/// and notes/marker-convention.md (multimarker).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum TargetSpec {
+pub enum SceneTarget {
     /// A ChArUco board (OpenCV 4.6 layout; an odd number of rows).
     Charuco {
         squares: [u32; 2],
@@ -310,7 +314,7 @@ pub struct Scene {
     pub board: Option<BoardSpec>,
     /// A marker target.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub target: Option<TargetSpec>,
+    pub target: Option<SceneTarget>,
     /// `T_base1_base2`.
     pub base1_from_base2: PoseSpec,
     /// Two or more robots with distinct ids (robot 1 defines `base1`; from the third on,
@@ -603,7 +607,7 @@ impl Scene {
         Ok(())
     }
 
-    fn validate_target(t: &TargetSpec, file: &Path) -> Result<(), SimError> {
+    fn validate_target(t: &SceneTarget, file: &Path) -> Result<(), SimError> {
         let bad = |field: &str, reason: String| SimError::SceneValue {
             file: PathBuf::from(file),
             field: field.to_owned(),
@@ -617,7 +621,7 @@ impl Scene {
             }
         };
         let (pose, margin) = match t {
-            TargetSpec::Charuco {
+            SceneTarget::Charuco {
                 square_m,
                 marker_m,
                 base1_from_target,
@@ -628,7 +632,7 @@ impl Scene {
                 metres("target.marker_m", *marker_m)?;
                 (base1_from_target, margin_m)
             }
-            TargetSpec::ArucoGrid {
+            SceneTarget::ArucoGrid {
                 marker_m,
                 separation_m,
                 base1_from_target,
@@ -641,7 +645,7 @@ impl Scene {
                 }
                 (base1_from_target, margin_m)
             }
-            TargetSpec::Multimarker {
+            SceneTarget::Multimarker {
                 layout,
                 base1_from_target,
                 margin_m,
@@ -715,13 +719,13 @@ impl Scene {
             )),
             (None, Some(t)) => {
                 let pose = match t {
-                    TargetSpec::Charuco {
+                    SceneTarget::Charuco {
                         base1_from_target, ..
                     }
-                    | TargetSpec::ArucoGrid {
+                    | SceneTarget::ArucoGrid {
                         base1_from_target, ..
                     }
-                    | TargetSpec::Multimarker {
+                    | SceneTarget::Multimarker {
                         base1_from_target, ..
                     } => base1_from_target,
                 };

@@ -1,6 +1,12 @@
 //! The calibration target of a scene as the generator needs it: its printed surfaces,
 //! the points that must be in view, where to look from, what `dataset.json` says about
 //! it, and the extra files (an ARToolKit multimarker file) the dataset carries.
+//!
+//! A [`TargetModel`] is a renderable, not another description of the target: the
+//! target it stands for is its `manifest`, the `dataset.json` block every other path
+//! reads into the one `b2b_vision::Target` (the simulator links no OpenCV, so it
+//! stops at the file schema). Its `centre` and `view_axis` are the ones
+//! `b2b_vision::Target` computes (tested in `pipeline/tests/targets.rs`).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -9,7 +15,7 @@ use b2b_dataset::Target;
 use nalgebra::{Point3, Vector3};
 
 use crate::markers::{self, PlacedMarker};
-use crate::scene::{BoardSpec, MultimarkerLayout, TargetSpec};
+use crate::scene::{BoardSpec, MultimarkerLayout, SceneTarget};
 use crate::texture::{Checkerboard, Texture};
 use crate::{Iso3, SimError};
 
@@ -85,10 +91,10 @@ impl TargetModel {
     }
 
     /// A marker target.
-    pub fn build(spec: &TargetSpec) -> Result<TargetModel, SimError> {
+    pub fn build(spec: &SceneTarget) -> Result<TargetModel, SimError> {
         let down = -Vector3::z();
         match spec {
-            TargetSpec::Charuco {
+            SceneTarget::Charuco {
                 squares,
                 square_m,
                 marker_m,
@@ -125,7 +131,7 @@ impl TargetModel {
                     files: vec![],
                 })
             }
-            TargetSpec::ArucoGrid {
+            SceneTarget::ArucoGrid {
                 markers: count,
                 marker_m,
                 separation_m,
@@ -173,7 +179,7 @@ impl TargetModel {
                     files: vec![],
                 })
             }
-            TargetSpec::Multimarker {
+            SceneTarget::Multimarker {
                 dictionary,
                 layout,
                 margin_m,

@@ -10,7 +10,7 @@
 use b2b_calib::camera::CameraModel;
 use b2b_sim::Iso3;
 use b2b_sim::render::{Lighting, Optics, RenderSettings, Renderer, SceneGeometry};
-use b2b_sim::scene::{BoardSpec, TargetSpec};
+use b2b_sim::scene::{BoardSpec, SceneTarget};
 use b2b_sim::sensor::{SensorNoise, expose};
 use b2b_sim::target::TargetModel;
 use b2b_vision::{
@@ -118,7 +118,7 @@ fn det_errors(det: &BoardDetection, camera_from_target: &Iso3) -> (f64, f64) {
 }
 
 fn scene_target(json: &str) -> TargetModel {
-    let spec: TargetSpec = serde_json::from_str(json).unwrap();
+    let spec: SceneTarget = serde_json::from_str(json).unwrap();
     TargetModel::build(&spec).unwrap()
 }
 

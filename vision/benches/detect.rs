@@ -15,12 +15,12 @@ use std::hint::black_box;
 
 use b2b_calib::camera::CameraModel;
 use b2b_vision::multimarker::{MultimarkerConfig, detect_multimarker};
-use b2b_vision::printable::{PrintableTarget, pages};
+use b2b_vision::printable::{Page, marker_page, pages};
 use b2b_vision::synth::{
     BoardScene, PlaneScene, TexturedPlane, render_checkerboard, render_planes,
 };
 use b2b_vision::{
-    ArucoGridSpec, CharucoSpec, CheckerboardSpec, MarkerDictionary, detect_aruco_grid,
+    ArucoGridSpec, CharucoSpec, CheckerboardSpec, MarkerDictionary, Target, detect_aruco_grid,
     detect_charuco, detect_checkerboard, detect_marker, render_charuco,
 };
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -192,10 +192,10 @@ fn bench_charuco(c: &mut Criterion) {
     group.finish();
 }
 
-/// A page of `printable` as a textured plane in a board frame (x right, y down, z
-/// into the page), its top-left corner at `(-margin, -margin)`.
-fn page_plane(target: &PrintableTarget, margin: f64) -> TexturedPlane {
-    let page = &pages(target, margin).unwrap()[0];
+/// A page of `printable`, laid out with `margin`, as a textured plane in a board
+/// frame (x right, y down, z into the page), its top-left corner at
+/// `(-margin, -margin)`.
+fn page_plane(page: &Page, margin: f64) -> TexturedPlane {
     let dpi = 600.0;
     TexturedPlane {
         texture: page.png(dpi).unwrap(),
@@ -250,18 +250,17 @@ fn bench_markers(c: &mut Criterion) {
         first_id: 0,
     };
     let grid_img = planes_frame(
-        vec![page_plane(&PrintableTarget::ArucoGrid(grid.clone()), 0.01)],
+        vec![page_plane(
+            &pages(&Target::ArucoGrid(grid.clone()), 0.01).unwrap()[0],
+            0.01,
+        )],
         tilted(Vector3::new(0.115, 0.085, 0.0), 0.7),
     );
     assert_eq!(
         detect_aruco_grid(&grid_img, &grid).unwrap().pixels.len(),
         48
     );
-    let tag = PrintableTarget::Marker {
-        dictionary: "DICT_APRILTAG_36h11".into(),
-        id: 7,
-        marker_m: 0.1,
-    };
+    let tag = marker_page("DICT_APRILTAG_36h11", 7, 0.1, 0.03).unwrap();
     let tag_img = planes_frame(
         vec![page_plane(&tag, 0.03)],
         tilted(Vector3::new(0.05, 0.05, 0.0), 0.6),

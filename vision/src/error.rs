@@ -119,6 +119,12 @@ pub enum VisionError {
     /// Camera calibration could not run or gave an unusable result.
     #[error("intrinsics: {0}")]
     Intrinsics(String),
+    /// Intrinsics asked for from a kind of target they are not calibrated from
+    /// (only checkerboard and ChArUco images are).
+    #[error(
+        "intrinsics are calibrated from checkerboard or ChArUco images, not from a {kind} target"
+    )]
+    IntrinsicsTarget { kind: &'static str },
     /// A printable target could not be made or written.
     #[error("printable target: {0}")]
     Printable(String),

@@ -23,17 +23,10 @@ use opencv::calib3d;
 use opencv::core::{Mat, Point2f, Point3f, Size, TermCriteria, Vector};
 use opencv::prelude::*;
 
-use crate::checkerboard::{BoardDetection, CheckerboardSpec};
+use crate::checkerboard::BoardDetection;
 use crate::error::{CvContext, VisionError, chain};
 use crate::image::GrayImage;
-use crate::markers::CharucoSpec;
-
-/// The board the calibration images show.
-#[derive(Debug, Clone, PartialEq)]
-pub enum CalibrationTarget {
-    Checkerboard(CheckerboardSpec),
-    Charuco(CharucoSpec),
-}
+use crate::target::Target;
 
 /// Settings of [`calibrate_intrinsics`].
 #[derive(Debug, Clone, PartialEq)]
@@ -108,25 +101,29 @@ impl IntrinsicsResult {
     }
 }
 
-fn detect(
-    img: &GrayImage,
-    target: &CalibrationTarget,
-    guess: &CameraModel,
-) -> Result<BoardDetection, VisionError> {
+/// How many detect-and-fit passes a target's images need: one for a checkerboard,
+/// two for ChArUco (its corners are predicted through the camera); other kinds are
+/// [`VisionError::IntrinsicsTarget`].
+fn passes(target: &Target) -> Result<usize, VisionError> {
     match target {
-        CalibrationTarget::Checkerboard(s) => crate::detect_checkerboard(img, s),
-        CalibrationTarget::Charuco(s) => crate::detect_charuco(img, s, guess),
+        Target::Checkerboard(_) => Ok(1),
+        Target::Charuco(_) => Ok(2),
+        Target::ArucoGrid(_) | Target::Multimarker { .. } => Err(VisionError::IntrinsicsTarget {
+            kind: target.kind(),
+        }),
     }
 }
 
-/// Calibrates a camera from named images of one board. All images must have the same
-/// size. Fails (with the per-image reasons) when fewer than
+/// Calibrates a camera from named images of one board (a checkerboard or a ChArUco
+/// board; other kinds are [`VisionError::IntrinsicsTarget`]). All images must have
+/// the same size. Fails (with the per-image reasons) when fewer than
 /// [`IntrinsicsOptions::min_images`] images are usable.
 pub fn calibrate_intrinsics(
     images: &[(String, GrayImage)],
-    target: &CalibrationTarget,
+    target: &Target,
     options: &IntrinsicsOptions,
 ) -> Result<IntrinsicsResult, VisionError> {
+    let passes = passes(target)?;
     let Some((_, first)) = images.first() else {
         return Err(VisionError::Intrinsics("no images given".into()));
     };
@@ -153,10 +150,6 @@ pub fn calibrate_intrinsics(
         &[],
     )
     .map_err(|e| VisionError::Intrinsics(e.to_string()))?;
-    let passes = match target {
-        CalibrationTarget::Checkerboard(_) => 1,
-        CalibrationTarget::Charuco(_) => 2,
-    };
     let mut camera = guess;
     let mut result = None;
     for _ in 0..passes {
@@ -169,7 +162,7 @@ pub fn calibrate_intrinsics(
 
 fn calibrate_pass(
     images: &[(String, GrayImage)],
-    target: &CalibrationTarget,
+    target: &Target,
     options: &IntrinsicsOptions,
     guess: &CameraModel,
 ) -> Result<IntrinsicsResult, VisionError> {
@@ -182,7 +175,7 @@ fn calibrate_pass(
             rms_px: None,
             rejected: None,
         };
-        match detect(img, target, guess) {
+        match target.detect_corners(img, guess) {
             Err(e) => report.rejected = Some(format!("board not found: {}", chain(&e))),
             Ok(det) => {
                 report.corners = det.pixels.len();
@@ -477,9 +470,10 @@ fn run_calibration(
 /// reason, not a failure of the whole run.
 pub fn calibrate_intrinsics_from_dir(
     dir: &Path,
-    target: &CalibrationTarget,
+    target: &Target,
     options: &IntrinsicsOptions,
 ) -> Result<IntrinsicsResult, VisionError> {
+    passes(target)?;
     let entries = std::fs::read_dir(dir).map_err(|source| VisionError::Io {
         path: dir.to_path_buf(),
         source,

@@ -75,6 +75,15 @@
 //! [`printable`] lays every target kind out as SVG (exact size in mm) and PNG (at a
 //! DPI), plus the multimarker file.
 //!
+//! # One target model
+//!
+//! [`Target`] is the target every path works with: detection and pose
+//! ([`Target::detect`]), the points, centre, view axis and symmetry the planner and
+//! the symmetric-board rule need, intrinsics ([`calibrate_intrinsics`]: checkerboard
+//! or ChArUco) and printing ([`printable::pages`]). The pipeline makes it from
+//! `dataset.json`'s `target` block (the file schema, which names a multimarker set
+//! by its file).
+//!
 //! # Orientation
 //!
 //! OpenCV's detectors return the grid starting at any of its four corners. The
@@ -101,6 +110,7 @@ pub mod multimarker;
 pub mod pose;
 pub mod printable;
 pub mod synth;
+pub mod target;
 
 pub use checkerboard::{
     BoardDetection, CheckerboardSpec, CornerMethod, DEFAULT_METHODS, detect_checkerboard,
@@ -112,8 +122,8 @@ pub use image::{
     load_gray, load_gray_sized,
 };
 pub use intrinsics::{
-    CalibrationTarget, DistortionTerms, IntrinsicsOptions, IntrinsicsResult,
-    calibrate_from_detections, calibrate_intrinsics, calibrate_intrinsics_from_dir,
+    DistortionTerms, IntrinsicsOptions, IntrinsicsResult, calibrate_from_detections,
+    calibrate_intrinsics, calibrate_intrinsics_from_dir,
 };
 pub use markers::{
     ArucoGridSpec, CharucoSpec, MarkerDictionary, detect_aruco_grid, detect_charuco, detect_marker,
@@ -123,3 +133,4 @@ pub use multimarker::{
     MultimarkerConfig, MultimarkerDetection, detect_multimarker, multimarker_pose,
 };
 pub use pose::{PoseEstimate, board_pose};
+pub use target::Target;

@@ -18,7 +18,7 @@
 //!   target origin is the inner corner at `(margin + square, margin + square)`, x to the
 //!   right, y down (z into the page), the outer-corner square at the top left black;
 //! - ChArUco / ArUco grid: OpenCV's board frame (x right, y down) offset by `margin`;
-//! - single marker: the marker centred, `margin` of white around it;
+//! - single marker ([`marker_page`]): the marker centred, `margin` of white around it;
 //! - multimarker: one page per face ([`crate::multimarker::MultimarkerConfig::faces`]),
 //!   the face frame's x to the right and y up, the page's top-left corner at face
 //!   coordinates `(x_min - margin, y_max + margin)` of the markers.
@@ -28,35 +28,15 @@ use std::path::{Path, PathBuf};
 use opencv::core::Mat;
 use opencv::prelude::*;
 
-use crate::checkerboard::CheckerboardSpec;
 use crate::error::{CvContext, VisionError};
 use crate::image::GrayImage;
-use crate::markers::{ArucoGridSpec, CharucoSpec, MarkerDictionary};
-use crate::multimarker::MultimarkerConfig;
+use crate::markers::MarkerDictionary;
+use crate::target::Target;
 
 /// Largest page side, millimetres (a 2 m poster).
 const MAX_PAGE_MM: f64 = 2000.0;
 /// Largest PNG side, pixels.
 const MAX_PNG_PX: f64 = 40_000.0;
-
-/// A target to print.
-#[derive(Debug, Clone, PartialEq)]
-pub enum PrintableTarget {
-    Checkerboard(CheckerboardSpec),
-    Charuco(CharucoSpec),
-    ArucoGrid(ArucoGridSpec),
-    /// One marker of `dictionary` (an OpenCV name), `marker_m` wide.
-    Marker {
-        dictionary: String,
-        id: usize,
-        marker_m: f64,
-    },
-    /// A multimarker set: one page per face.
-    Multimarker {
-        config: MultimarkerConfig,
-        dictionary: String,
-    },
-}
 
 /// Black rectangles on a white page, millimetres, y down.
 #[derive(Debug, Clone, PartialEq)]
@@ -207,25 +187,49 @@ fn marker_rects(
     Ok(())
 }
 
-/// Lays out the pages of a target with `margin_m` of white around it.
-pub fn pages(target: &PrintableTarget, margin_m: f64) -> Result<Vec<Page>, VisionError> {
+/// A `w` x `h` mm page of `rects`, refused when larger than a poster.
+fn page(w: f64, h: f64, rects: Vec<[f64; 4]>, name: String) -> Result<Page, VisionError> {
+    if w > MAX_PAGE_MM || h > MAX_PAGE_MM {
+        return Err(VisionError::Printable(format!(
+            "a {w:.1} x {h:.1} mm page: more than {MAX_PAGE_MM} mm per side"
+        )));
+    }
+    Ok(Page {
+        name,
+        width_mm: w,
+        height_mm: h,
+        rects,
+    })
+}
+
+/// The page of one marker of `dictionary` (an OpenCV name), `marker_m` wide, centred
+/// with `margin_m` of white around it (at least one of its cells).
+pub fn marker_page(
+    dictionary: &str,
+    id: usize,
+    marker_m: f64,
+    margin_m: f64,
+) -> Result<Page, VisionError> {
+    let m = check_len("margin", margin_m)?;
+    let dict = MarkerDictionary::parse(dictionary)?;
+    let mk = check_len("marker size", marker_m)?;
+    if mk <= 0.0 {
+        return Err(VisionError::Printable(
+            "marker size must be positive".into(),
+        ));
+    }
+    let mut rects = Vec::new();
+    marker_rects(&dict, id, m, m, mk, m, &mut rects)?;
+    page(2.0 * m + mk, 2.0 * m + mk, rects, String::new())
+}
+
+/// Lays out the pages of a target with `margin_m` of white around it: one page, or
+/// one per face of a multimarker set.
+pub fn pages(target: &Target, margin_m: f64) -> Result<Vec<Page>, VisionError> {
     let m = check_len("margin", margin_m)?;
     let mut rects = Vec::new();
-    let page = |w: f64, h: f64, rects: Vec<[f64; 4]>, name: String| -> Result<Page, VisionError> {
-        if w > MAX_PAGE_MM || h > MAX_PAGE_MM {
-            return Err(VisionError::Printable(format!(
-                "a {w:.1} x {h:.1} mm page: more than {MAX_PAGE_MM} mm per side"
-            )));
-        }
-        Ok(Page {
-            name,
-            width_mm: w,
-            height_mm: h,
-            rects,
-        })
-    };
     match target {
-        PrintableTarget::Checkerboard(spec) => {
+        Target::Checkerboard(spec) => {
             spec.validate()?;
             let s = check_len("square size", spec.square_m)?;
             let (nc, nr) = (spec.cols + 1, spec.rows + 1);
@@ -243,7 +247,7 @@ pub fn pages(target: &PrintableTarget, margin_m: f64) -> Result<Vec<Page>, Visio
                 String::new(),
             )?])
         }
-        PrintableTarget::Charuco(spec) => {
+        Target::Charuco(spec) => {
             let dict = spec.validate()?;
             let s = check_len("square size", spec.square_m)?;
             let mk = check_len("marker size", spec.marker_m)?;
@@ -285,7 +289,7 @@ pub fn pages(target: &PrintableTarget, margin_m: f64) -> Result<Vec<Page>, Visio
                 String::new(),
             )?])
         }
-        PrintableTarget::ArucoGrid(spec) => {
+        Target::ArucoGrid(spec) => {
             let dict = spec.validate()?;
             let mk = check_len("marker size", spec.marker_m)?;
             let sep = check_len("separation", spec.separation_m)?;
@@ -310,28 +314,8 @@ pub fn pages(target: &PrintableTarget, margin_m: f64) -> Result<Vec<Page>, Visio
             let h = r as f64 * mk + (r - 1) as f64 * sep;
             Ok(vec![page(2.0 * m + w, 2.0 * m + h, rects, String::new())?])
         }
-        PrintableTarget::Marker {
-            dictionary,
-            id,
-            marker_m,
-        } => {
-            let dict = MarkerDictionary::parse(dictionary)?;
-            let mk = check_len("marker size", *marker_m)?;
-            if mk <= 0.0 {
-                return Err(VisionError::Printable(
-                    "marker size must be positive".into(),
-                ));
-            }
-            marker_rects(&dict, *id, m, m, mk, m, &mut rects)?;
-            Ok(vec![page(
-                2.0 * m + mk,
-                2.0 * m + mk,
-                rects,
-                String::new(),
-            )?])
-        }
-        PrintableTarget::Multimarker { config, dictionary } => {
-            let dict = MarkerDictionary::parse(dictionary)?;
+        Target::Multimarker { config, dictionary } => {
+            let dict = *dictionary;
             config.check_dictionary(&dict)?;
             let mut out = Vec::new();
             for (f, face) in config.faces().iter().enumerate() {
@@ -363,26 +347,46 @@ pub fn pages(target: &PrintableTarget, margin_m: f64) -> Result<Vec<Page>, Visio
 /// Writes `<stem>[-faceN].svg`, `<stem>[-faceN]-<dpi>dpi.png` and, for a multimarker
 /// target, `<stem>.dat` into `dir`; returns the files written.
 pub fn write_printable(
-    target: &PrintableTarget,
+    target: &Target,
     dpi: f64,
     margin_m: f64,
     dir: &Path,
     stem: &str,
 ) -> Result<Vec<PathBuf>, VisionError> {
-    let io = |path: &Path, source: std::io::Error| VisionError::Io {
+    let mut written = write_pages(&pages(target, margin_m)?, dpi, dir, stem)?;
+    if let Target::Multimarker { config, .. } = target {
+        let dat = dir.join(format!("{stem}.dat"));
+        std::fs::write(&dat, config.to_dat()).map_err(|e| io_error(&dat, e))?;
+        written.push(dat);
+    }
+    Ok(written)
+}
+
+fn io_error(path: &Path, source: std::io::Error) -> VisionError {
+    VisionError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+    }
+}
+
+/// Writes each page as `<stem>[-<name>].svg` and `<stem>[-<name>]-<dpi>dpi.png` into
+/// `dir` (a page's name is added when it has one); returns the files written.
+pub fn write_pages(
+    pages: &[Page],
+    dpi: f64,
+    dir: &Path,
+    stem: &str,
+) -> Result<Vec<PathBuf>, VisionError> {
+    std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
     let mut written = Vec::new();
-    for p in pages(target, margin_m)? {
+    for p in pages {
         let base = if p.name.is_empty() {
             stem.to_string()
         } else {
             format!("{stem}-{}", p.name)
         };
         let svg = dir.join(format!("{base}.svg"));
-        std::fs::write(&svg, p.svg()).map_err(|e| io(&svg, e))?;
+        std::fs::write(&svg, p.svg()).map_err(|e| io_error(&svg, e))?;
         written.push(svg);
         let png = dir.join(format!("{base}-{}dpi.png", dpi.round()));
         let img = p.png(dpi)?;
@@ -398,11 +402,6 @@ pub fn write_printable(
             )));
         }
         written.push(png);
-    }
-    if let PrintableTarget::Multimarker { config, .. } = target {
-        let dat = dir.join(format!("{stem}.dat"));
-        std::fs::write(&dat, config.to_dat()).map_err(|e| io(&dat, e))?;
-        written.push(dat);
     }
     Ok(written)
 }

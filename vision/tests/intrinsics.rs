@@ -2,12 +2,14 @@
 
 use b2b_calib::camera::CameraModel;
 use b2b_vision::intrinsics::{
-    CalibrationTarget, IntrinsicsOptions, calibrate_intrinsics, calibrate_intrinsics_from_dir,
+    IntrinsicsOptions, calibrate_intrinsics, calibrate_intrinsics_from_dir,
 };
 use b2b_vision::synth::{
     BoardScene, PlaneScene, TexturedPlane, render_checkerboard, render_planes,
 };
-use b2b_vision::{CharucoSpec, CheckerboardSpec, GrayImage, VisionError, render_charuco};
+use b2b_vision::{
+    ArucoGridSpec, CharucoSpec, CheckerboardSpec, GrayImage, Target, VisionError, render_charuco,
+};
 use nalgebra::{Isometry3, Point2, Translation3, UnitQuaternion, Vector3};
 
 fn true_camera() -> CameraModel {
@@ -160,7 +162,7 @@ fn checkerboard_intrinsics_are_recovered_and_bad_images_rejected_with_reasons() 
 
     let r = calibrate_intrinsics(
         &images,
-        &CalibrationTarget::Checkerboard(spec()),
+        &Target::Checkerboard(spec()),
         &IntrinsicsOptions::default(),
     )
     .unwrap();
@@ -214,7 +216,7 @@ fn checkerboard_intrinsics_are_recovered_and_bad_images_rejected_with_reasons() 
         .collect();
     let err = calibrate_intrinsics(
         &few,
-        &CalibrationTarget::Checkerboard(spec()),
+        &Target::Checkerboard(spec()),
         &IntrinsicsOptions::default(),
     )
     .unwrap_err();
@@ -240,7 +242,7 @@ fn checkerboard_intrinsics_are_recovered_and_bad_images_rejected_with_reasons() 
     ));
     let err = calibrate_intrinsics(
         &mixed,
-        &CalibrationTarget::Checkerboard(spec()),
+        &Target::Checkerboard(spec()),
         &IntrinsicsOptions::default(),
     )
     .unwrap_err();
@@ -248,7 +250,7 @@ fn checkerboard_intrinsics_are_recovered_and_bad_images_rejected_with_reasons() 
     assert!(matches!(
         calibrate_intrinsics(
             &[],
-            &CalibrationTarget::Checkerboard(spec()),
+            &Target::Checkerboard(spec()),
             &IntrinsicsOptions::default()
         ),
         Err(VisionError::Intrinsics(_))
@@ -268,7 +270,7 @@ fn checkerboard_intrinsics_are_recovered_and_bad_images_rejected_with_reasons() 
     std::fs::write(dir.path().join("notes.txt"), b"ignored").unwrap();
     let r = calibrate_intrinsics_from_dir(
         dir.path(),
-        &CalibrationTarget::Checkerboard(spec()),
+        &Target::Checkerboard(spec()),
         &IntrinsicsOptions::default(),
     )
     .unwrap();
@@ -287,11 +289,27 @@ fn checkerboard_intrinsics_are_recovered_and_bad_images_rejected_with_reasons() 
     let empty = tempfile::tempdir().unwrap();
     let err = calibrate_intrinsics_from_dir(
         empty.path(),
-        &CalibrationTarget::Checkerboard(spec()),
+        &Target::Checkerboard(spec()),
         &IntrinsicsOptions::default(),
     )
     .unwrap_err();
     assert!(err.to_string().contains("no image files"), "{err}");
+    // Kinds intrinsics are not calibrated from are refused by name, before any image.
+    let grid = Target::ArucoGrid(ArucoGridSpec {
+        markers: [4, 3],
+        marker_m: 0.05,
+        separation_m: 0.01,
+        dictionary: "DICT_6X6_250".into(),
+        first_id: 0,
+    });
+    assert!(matches!(
+        calibrate_intrinsics(&images, &grid, &IntrinsicsOptions::default()),
+        Err(VisionError::IntrinsicsTarget { kind: "aruco_grid" })
+    ));
+    assert!(matches!(
+        calibrate_intrinsics_from_dir(empty.path(), &grid, &IntrinsicsOptions::default()),
+        Err(VisionError::IntrinsicsTarget { kind: "aruco_grid" })
+    ));
 }
 
 #[test]
@@ -337,7 +355,7 @@ fn charuco_intrinsics_are_recovered_from_partly_seen_boards() {
         .collect();
     let r = calibrate_intrinsics(
         &images,
-        &CalibrationTarget::Charuco(spec),
+        &Target::Charuco(spec),
         &IntrinsicsOptions::default(),
     )
     .unwrap();

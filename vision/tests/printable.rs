@@ -3,9 +3,9 @@
 
 use b2b_calib::camera::CameraModel;
 use b2b_vision::multimarker::{MultimarkerConfig, detect_multimarker};
-use b2b_vision::printable::{PrintableTarget, pages, write_printable};
+use b2b_vision::printable::{marker_page, pages, write_printable};
 use b2b_vision::{
-    ArucoGridSpec, CharucoSpec, CheckerboardSpec, GrayImage, MarkerDictionary, VisionError,
+    ArucoGridSpec, CharucoSpec, CheckerboardSpec, GrayImage, MarkerDictionary, Target, VisionError,
     detect_aruco_grid, detect_charuco, detect_checkerboard, detect_marker,
 };
 use nalgebra::Point2;
@@ -68,7 +68,7 @@ fn checkerboard_page_is_detected_with_its_layout_and_svg_size() {
         rows: 6,
         square_m: 0.025,
     };
-    let page = &pages(&PrintableTarget::Checkerboard(spec), MARGIN).unwrap()[0];
+    let page = &pages(&Target::Checkerboard(spec), MARGIN).unwrap()[0];
     assert_eq!(svg_size(&page.svg()), (270.0, 195.0));
     let img = page.png(DPI).unwrap();
     assert_eq!(
@@ -102,7 +102,7 @@ fn charuco_grid_and_marker_pages_are_detected_with_their_layout() {
         marker_m: 0.028,
         dictionary: "DICT_5X5_100".into(),
     };
-    let page = &pages(&PrintableTarget::Charuco(charuco.clone()), MARGIN).unwrap()[0];
+    let page = &pages(&Target::Charuco(charuco.clone()), MARGIN).unwrap()[0];
     assert_eq!(svg_size(&page.svg()), (300.0, 220.0));
     let img = page.png(DPI).unwrap();
     let det = detect_charuco(&img, &charuco, &page_camera(&img)).unwrap();
@@ -123,7 +123,7 @@ fn charuco_grid_and_marker_pages_are_detected_with_their_layout() {
         dictionary: "DICT_6X6_250".into(),
         first_id: 3,
     };
-    let page = &pages(&PrintableTarget::ArucoGrid(grid.clone()), MARGIN).unwrap()[0];
+    let page = &pages(&Target::ArucoGrid(grid.clone()), MARGIN).unwrap()[0];
     assert_eq!(svg_size(&page.svg()), (250.0, 190.0));
     let img = page.png(DPI).unwrap();
     let det = detect_aruco_grid(&img, &grid).unwrap();
@@ -137,12 +137,7 @@ fn charuco_grid_and_marker_pages_are_detected_with_their_layout() {
     eprintln!("aruco grid page: max corner error {e:.3} px");
     assert!(e < TOL_PX, "{e}");
 
-    let marker = PrintableTarget::Marker {
-        dictionary: "DICT_APRILTAG_36h11".into(),
-        id: 7,
-        marker_m: 0.06,
-    };
-    let page = &pages(&marker, MARGIN).unwrap()[0];
+    let page = &marker_page("DICT_APRILTAG_36h11", 7, 0.06, MARGIN).unwrap();
     assert_eq!(svg_size(&page.svg()), (80.0, 80.0));
     let img = page.png(DPI).unwrap();
     let det = detect_marker(&img, "DICT_APRILTAG_36h11", 7, 0.06).unwrap();
@@ -173,9 +168,9 @@ fn multimarker_pages_and_file_are_written_and_detected() {
             3,
         ),
     ] {
-        let target = PrintableTarget::Multimarker {
+        let target = Target::Multimarker {
             config: config.clone(),
-            dictionary: dictionary.into(),
+            dictionary: MarkerDictionary::parse(dictionary).unwrap(),
         };
         let files = write_printable(&target, DPI, MARGIN, dir.path(), stem).unwrap();
         assert_eq!(files.len(), 2 * n_pages + 1, "{files:?}");
@@ -249,7 +244,7 @@ fn bad_printing_requests_are_refused() {
         rows: 6,
         square_m: 0.025,
     };
-    let page = &pages(&PrintableTarget::Checkerboard(spec), MARGIN).unwrap()[0];
+    let page = &pages(&Target::Checkerboard(spec), MARGIN).unwrap()[0];
     for dpi in [0.0, -5.0, f64::NAN, 1e6] {
         assert!(
             matches!(page.png(dpi), Err(VisionError::Printable(_))),
@@ -261,44 +256,21 @@ fn bad_printing_requests_are_refused() {
         rows: 100,
         square_m: 0.1,
     };
-    assert!(pages(&PrintableTarget::Checkerboard(huge), MARGIN).is_err());
-    assert!(pages(&PrintableTarget::Checkerboard(spec), -0.01).is_err());
-    let bad_id = PrintableTarget::Marker {
-        dictionary: "DICT_4X4_50".into(),
-        id: 50,
-        marker_m: 0.05,
-    };
+    assert!(pages(&Target::Checkerboard(huge), MARGIN).is_err());
+    assert!(pages(&Target::Checkerboard(spec), -0.01).is_err());
     assert!(matches!(
-        pages(&bad_id, MARGIN),
+        marker_page("DICT_4X4_50", 50, 0.05, MARGIN),
         Err(VisionError::InvalidTarget(_))
     ));
-    let bad_dict = PrintableTarget::Marker {
-        dictionary: "DICT_9X9_1".into(),
-        id: 0,
-        marker_m: 0.05,
-    };
     assert!(matches!(
-        pages(&bad_dict, MARGIN),
+        marker_page("DICT_9X9_1", 0, 0.05, MARGIN),
         Err(VisionError::UnknownDictionary(_))
     ));
     // Less white around a marker than one of its cells (12.5 mm here).
-    let tight = PrintableTarget::Marker {
-        dictionary: "DICT_APRILTAG_36h11".into(),
-        id: 0,
-        marker_m: 0.1,
-    };
-    let err = pages(&tight, 0.01).unwrap_err();
+    let tight = |margin_m| marker_page("DICT_APRILTAG_36h11", 0, 0.1, margin_m);
+    let err = tight(0.01).unwrap_err();
     assert!(err.to_string().contains("quiet zone"), "{err}");
-    assert!(pages(&tight, 0.0125).is_ok());
+    assert!(tight(0.0125).is_ok());
     let readonly = std::path::Path::new("/proc/nonexistent-dir");
-    assert!(
-        write_printable(
-            &PrintableTarget::Checkerboard(spec),
-            DPI,
-            MARGIN,
-            readonly,
-            "x"
-        )
-        .is_err()
-    );
+    assert!(write_printable(&Target::Checkerboard(spec), DPI, MARGIN, readonly, "x").is_err());
 }

@@ -22,7 +22,7 @@ use std::sync::{LazyLock, Mutex};
 
 use b2b_calib::Iso3;
 use b2b_calib::camera::CameraModel;
-use b2b_pipeline::{CalibrationRun, RobotSetup, TargetSpec};
+use b2b_pipeline::{CalibrationRun, RobotSetup, target_of};
 use b2b_vision::BoardDetection;
 use b2b_vision::checkerboard::{CornerMethod, find_corners, orient_corners};
 use b2b_vision::intrinsics::{DistortionTerms, IntrinsicsOptions, calibrate_from_detections};
@@ -81,7 +81,7 @@ pub fn opencv_pairs(
     run: &CalibrationRun,
     points: &[nalgebra::Point3<f64>],
 ) -> Vec<PeerFigure> {
-    let TargetSpec::Checkerboard(spec) = TargetSpec::from_dataset(&s.dataset).unwrap() else {
+    let b2b_vision::Target::Checkerboard(spec) = target_of(&s.dataset).unwrap() else {
         panic!("the real splits are checkerboards");
     };
     let mut out = vec![];

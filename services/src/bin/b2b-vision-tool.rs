@@ -13,12 +13,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
-use b2b_dataset::Target;
 use b2b_services::{init_logging, run_main, write_json};
-use b2b_vision::intrinsics::{CalibrationTarget, IntrinsicsOptions, calibrate_intrinsics_from_dir};
+use b2b_vision::intrinsics::{IntrinsicsOptions, calibrate_intrinsics_from_dir};
 use b2b_vision::multimarker::MultimarkerConfig;
-use b2b_vision::printable::{PrintableTarget, write_printable};
-use b2b_vision::{ArucoGridSpec, CharucoSpec, CheckerboardSpec};
+use b2b_vision::printable::{marker_page, write_pages, write_printable};
+use b2b_vision::{MarkerDictionary, Target};
 use clap::{Parser, Subcommand, ValueEnum};
 
 #[derive(Parser, Debug)]
@@ -102,7 +101,7 @@ struct IntrinsicsArgs {
 }
 
 /// Reads a target block, or the `target` of a dataset.json.
-fn read_target(path: &Path) -> anyhow::Result<Target> {
+fn read_block(path: &Path) -> anyhow::Result<b2b_dataset::Target> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let value: serde_json::Value = serde_json::from_str(&text)
@@ -116,53 +115,13 @@ fn read_target(path: &Path) -> anyhow::Result<Target> {
     })
 }
 
-fn printable_of(target: Target, json: &Path) -> anyhow::Result<PrintableTarget> {
-    Ok(match target {
-        Target::Checkerboard {
-            inner_corners,
-            square_m,
-        } => PrintableTarget::Checkerboard(CheckerboardSpec {
-            cols: inner_corners[0] as usize,
-            rows: inner_corners[1] as usize,
-            square_m,
-        }),
-        Target::Charuco {
-            squares,
-            square_m,
-            marker_m,
-            dictionary,
-        } => PrintableTarget::Charuco(CharucoSpec {
-            squares: [squares[0] as usize, squares[1] as usize],
-            square_m,
-            marker_m,
-            dictionary,
-        }),
-        Target::ArucoGrid {
-            markers,
-            marker_m,
-            separation_m,
-            dictionary,
-            first_id,
-        } => PrintableTarget::ArucoGrid(ArucoGridSpec {
-            markers: [markers[0] as usize, markers[1] as usize],
-            marker_m,
-            separation_m,
-            dictionary,
-            first_id: first_id as usize,
-        }),
-        Target::Multimarker { config, dictionary } => {
-            let base = json.parent().unwrap_or(Path::new("."));
-            let path = if config.is_absolute() {
-                config
-            } else {
-                base.join(config)
-            };
-            PrintableTarget::Multimarker {
-                config: MultimarkerConfig::load(&path)?,
-                dictionary,
-            }
-        }
-    })
+/// The target a `--target` file describes, read as a dataset's is (a multimarker
+/// `config` relative to the file's folder).
+fn target_of(json: &Path) -> anyhow::Result<Target> {
+    Ok(b2b_pipeline::target_from_manifest(
+        &read_block(json)?,
+        json,
+    )?)
 }
 
 /// `target`: a printable target.
@@ -178,24 +137,29 @@ fn target(args: TargetArgs) -> anyhow::Result<()> {
         dpi,
         margin_mm,
     } = args;
-    let printable = match (target, builtin) {
-        (Some(json), _) => printable_of(read_target(&json)?, &json)?,
-        (None, Some(Builtin::Multimarker4x3)) => PrintableTarget::Multimarker {
-            config: MultimarkerConfig::grid_4x3(),
-            dictionary,
-        },
-        (None, Some(Builtin::MultimarkerCorner)) => PrintableTarget::Multimarker {
-            config: MultimarkerConfig::three_face_corner(),
-            dictionary,
-        },
-        (None, Some(Builtin::Marker)) => PrintableTarget::Marker {
-            dictionary,
-            id,
-            marker_m: marker_mm * 1e-3,
-        },
+    let margin = margin_mm * 1e-3;
+    let files = match (target, builtin) {
+        (Some(json), _) => write_printable(&target_of(&json)?, dpi, margin, &out, &stem)?,
+        (None, Some(Builtin::Multimarker4x3)) => {
+            let target = Target::Multimarker {
+                config: MultimarkerConfig::grid_4x3(),
+                dictionary: MarkerDictionary::parse(&dictionary)?,
+            };
+            write_printable(&target, dpi, margin, &out, &stem)?
+        }
+        (None, Some(Builtin::MultimarkerCorner)) => {
+            let target = Target::Multimarker {
+                config: MultimarkerConfig::three_face_corner(),
+                dictionary: MarkerDictionary::parse(&dictionary)?,
+            };
+            write_printable(&target, dpi, margin, &out, &stem)?
+        }
+        (None, Some(Builtin::Marker)) => {
+            let page = marker_page(&dictionary, id, marker_mm * 1e-3, margin)?;
+            write_pages(&[page], dpi, &out, &stem)?
+        }
         (None, None) => bail!("give --target JSON or --builtin"),
     };
-    let files = write_printable(&printable, dpi, margin_mm * 1e-3, &out, &stem)?;
     for f in files {
         println!("{}", f.display());
     }
@@ -210,32 +174,7 @@ fn intrinsics(args: IntrinsicsArgs) -> anyhow::Result<()> {
         out,
         fit_k3,
     } = args;
-    let board = match read_target(&target)? {
-        Target::Checkerboard {
-            inner_corners,
-            square_m,
-        } => CalibrationTarget::Checkerboard(CheckerboardSpec {
-            cols: inner_corners[0] as usize,
-            rows: inner_corners[1] as usize,
-            square_m,
-        }),
-        Target::Charuco {
-            squares,
-            square_m,
-            marker_m,
-            dictionary,
-        } => CalibrationTarget::Charuco(CharucoSpec {
-            squares: [squares[0] as usize, squares[1] as usize],
-            square_m,
-            marker_m,
-            dictionary,
-        }),
-        other => bail!(
-            "{}: intrinsics need a checkerboard or charuco target, not '{}'",
-            target.display(),
-            other.kind()
-        ),
-    };
+    let board = target_of(&target)?;
     let options = IntrinsicsOptions {
         fit_k3,
         ..Default::default()
