@@ -19,14 +19,11 @@ use crate::bus::{self, Bus};
 use crate::{Result, ServiceError};
 use b2b_calib::degeneracy::{MotionThresholds, check_motions};
 use b2b_calib::refine::RefineOptions;
-use b2b_pipeline::rgbd::{RgbdOptions, capture_view};
-use b2b_pipeline::{
-    HandEyeChoice, Observation, RobotObservations, RobotSetup, error_chain, hand_eye,
-    observe_capture,
-};
+use b2b_live::{CaptureSource, Progress, ReplaySource, SourceCapture};
+use b2b_pipeline::{HandEyeChoice, Observation, RobotObservations, error_chain, hand_eye};
 use b2b_protocol::messages::{
-    AgentState, AgentStatus, BoardObservation, Capture, Envelope, FeatureSet, HandEyeUpdate,
-    Intrinsics, RunFailure, SessionAnnouncement, agent_key, failure_key, result_key, session_key,
+    AgentState, AgentStatus, BoardObservation, Capture, Envelope, HandEyeUpdate, Intrinsics,
+    RunFailure, SessionAnnouncement, agent_key, failure_key, result_key, session_key,
 };
 use b2b_protocol::{CalibrationResult, Pose};
 
@@ -110,163 +107,6 @@ pub struct BusArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
-}
-
-/// What the agent knows so far, handed to the source before each capture (the
-/// automatic routine stops when the hand-eye is good enough).
-#[derive(Debug, Clone, Default)]
-pub struct Progress {
-    pub good: usize,
-    pub rejected: usize,
-    /// The newest hand-eye estimate and its covariance.
-    pub hand_eye: Option<HandEyeUpdate>,
-    /// Flange poses of the good captures so far.
-    pub good_poses: Vec<nalgebra::Isometry3<f64>>,
-    /// `base_from_target` of each good capture with the hand-eye of its time.
-    pub base_from_target: Vec<nalgebra::Isometry3<f64>>,
-}
-
-/// One capture as a source delivers it.
-#[derive(Debug, Clone)]
-pub struct SourceCapture {
-    /// Stable index (a replay's row order; a live source's capture count).
-    pub index: u64,
-    pub image: Option<String>,
-    pub base_from_flange: nalgebra::Isometry3<f64>,
-    pub controller_time_s: Option<f64>,
-    pub camera: b2b_calib::camera::CameraModel,
-    /// The camera gave no intrinsics: `camera` is the agent's provisional
-    /// estimate ([`b2b_protocol::messages::Intrinsics::estimated`]).
-    pub intrinsics_estimated: bool,
-    pub observed: Result<Observation, b2b_protocol::RejectedCapture>,
-    /// The grey image, when the source has it in memory (for the recording).
-    pub pixels: Option<Vec<u8>>,
-    /// Local features lifted with the aligned depth (RGB-D method), when the
-    /// source has depth and was asked for them.
-    pub features: Option<b2b_protocol::messages::FeatureSet>,
-    /// The centre of the whole target in its frame (all its model points).
-    pub target_centre: nalgebra::Point3<f64>,
-    /// Which of the dataset's further `targets` the capture is of (`None`:
-    /// the main target; live sources observe that one).
-    pub target: Option<String>,
-}
-
-/// Where captures come from: a dataset replay, the simulated cart, or a real arm.
-/// Everything after the source is the same code.
-pub trait CaptureSource {
-    /// One line for the status message.
-    fn describe(&self) -> String;
-    /// How many captures to expect, when known (for the progress bar).
-    fn expected(&self) -> Option<u64>;
-    /// The next capture, or `None` when the source is done.
-    fn next(&mut self, progress: &Progress, stop: &AtomicBool) -> Result<Option<SourceCapture>>;
-    /// A closing line (timings, plan coverage), printed when the run ends.
-    fn summary(&self) -> Option<String> {
-        None
-    }
-    /// The agent's newest estimate of a camera that gave no intrinsics, for the
-    /// source's next detections (sources whose camera has intrinsics ignore it).
-    fn use_camera(&mut self, _camera: &b2b_calib::camera::CameraModel) {}
-}
-
-/// A `b2b-dataset/1` folder's captures of one robot.
-#[derive(Debug)]
-pub struct ReplaySource {
-    ds: b2b_dataset::Dataset,
-    setup: RobotSetup,
-    data: b2b_dataset::RobotData,
-    next: usize,
-    dataset: PathBuf,
-    /// Features for the RGB-D method (only for captures with depth).
-    features: Option<RgbdOptions>,
-}
-
-impl ReplaySource {
-    /// Opens `dataset` for `robot`.
-    pub fn open(dataset: &Path, robot: &str) -> Result<Self> {
-        let ds = b2b_pipeline::load_dataset(dataset)?;
-        let setup = RobotSetup::from_dataset(&ds, robot)?;
-        let data = ds
-            .robot(robot)
-            .ok_or_else(|| ServiceError::RobotNotInDataset {
-                robot: robot.to_owned(),
-                dataset: dataset.to_owned(),
-            })?
-            .clone();
-        Ok(ReplaySource {
-            ds,
-            setup,
-            data,
-            next: 0,
-            dataset: dataset.to_owned(),
-            features: None,
-        })
-    }
-
-    /// Also detect features of this kind and lift them with the capture's depth
-    /// image (captures without depth publish none).
-    pub fn with_features(mut self, kind: b2b_vision::features::FeatureKind) -> Self {
-        self.features = Some(RgbdOptions::with_kind(kind));
-        self
-    }
-
-    /// The capture's feature set, or why there is none (logged, not fatal: the
-    /// board observation still goes out, and the coordinator's RGB-D method
-    /// reports the capture as having no features).
-    fn feature_set(
-        &self,
-        cap: &b2b_dataset::Capture,
-        options: &RgbdOptions,
-    ) -> Result<Option<FeatureSet>, String> {
-        let robot = &self.setup.robot;
-        let Some(unit) = self.ds.robot_manifest(robot).and_then(|m| m.depth_unit_m) else {
-            return Ok(None);
-        };
-        if self.ds.depth_path(robot, cap).is_none() {
-            return Ok(None);
-        }
-        let view = capture_view(&self.ds, robot, &self.setup.camera, unit, cap, options)
-            .map_err(|e| error_chain(&e))?;
-        view.to_feature_set().map(Some).map_err(|e| error_chain(&e))
-    }
-}
-
-impl CaptureSource for ReplaySource {
-    fn describe(&self) -> String {
-        format!("replaying {}", self.dataset.display())
-    }
-
-    fn expected(&self) -> Option<u64> {
-        Some(self.data.captures.len() as u64)
-    }
-
-    fn next(&mut self, _progress: &Progress, _stop: &AtomicBool) -> Result<Option<SourceCapture>> {
-        let Some(cap) = self.data.captures.get(self.next) else {
-            return Ok(None);
-        };
-        let index = self.next as u64;
-        self.next += 1;
-        let features = match &self.features {
-            Some(options) => self.feature_set(cap, options).unwrap_or_else(|reason| {
-                tracing::warn!("row {}: no features: {reason}", cap.row);
-                None
-            }),
-            None => None,
-        };
-        Ok(Some(SourceCapture {
-            index,
-            image: cap.image.as_ref().map(|p| p.display().to_string()),
-            base_from_flange: cap.base_from_flange,
-            controller_time_s: None,
-            camera: self.setup.camera.clone(),
-            intrinsics_estimated: false,
-            observed: observe_capture(&self.ds, &self.setup, cap),
-            pixels: None,
-            features,
-            target_centre: self.setup.target_at(self.ds.target_index(cap)).0.centre(),
-            target: cap.target.clone(),
-        }))
-    }
 }
 
 fn board_observation(
@@ -690,22 +530,22 @@ pub fn run_watch(
     bus: &dyn Bus,
     robot: &str,
     state_dir: &Path,
-    source: &mut crate::live::LiveSource,
+    source: &mut b2b_live::LiveSource,
     period: Duration,
-    observe: crate::live::WatchObserve,
+    observe: b2b_live::WatchObserve,
     stop: &AtomicBool,
 ) -> Result<u64> {
     b2b_protocol::messages::validate_cart_id(robot)?;
     let seq = Sequence::open(state_dir, robot)?;
     let key = agent_key(robot, WATCH_TOPIC);
     let mut published = 0u64;
-    source.watch(period, observe, stop, &mut |cap| {
+    source.watch(period, observe, stop, &mut |cap| -> Result<()> {
         match (&cap.observed, &cap.features) {
             (Err(r), None) => tracing::warn!(
                 "{robot}: watch frame without the target or features: {}",
                 r.reason
             ),
-            (Err(r), Some(_)) if observe != crate::live::WatchObserve::Features => {
+            (Err(r), Some(_)) if observe != b2b_live::WatchObserve::Features => {
                 tracing::debug!("{robot}: watch frame without the target: {}", r.reason)
             }
             _ => {}

@@ -6,7 +6,6 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use b2b_pipeline::PipelineError;
 
@@ -45,6 +44,8 @@ pub enum ServiceError {
     Watch(Box<b2b_watch::WatchError>),
     #[error(transparent)]
     Json(#[from] serde_json::Error),
+    #[error(transparent)]
+    Live(#[from] b2b_live::LiveError),
 
     /// A file or folder that could not be read, written or created.
     #[error("cannot {action} {}", path.display())]
@@ -144,8 +145,6 @@ pub enum ServiceError {
     Poisoned { what: &'static str },
     #[error("robot '{robot}' is not in {}", dataset.display())]
     RobotNotInDataset { robot: String, dataset: PathBuf },
-    #[error("interrupted")]
-    Interrupted,
     #[error("interrupted after {captures} captures")]
     InterruptedAfter { captures: u64 },
     /// The coordinator's solve failed; its reason as it sent it.
@@ -228,74 +227,6 @@ pub enum ServiceError {
         #[source]
         source: Box<kuka_fri::FriError>,
     },
-    /// No measured joints: none within the wait (the cause), or none yet.
-    #[error("no joint state from the FRI controller")]
-    NoJointState {
-        #[source]
-        source: Option<Box<kuka_fri::FriError>>,
-    },
-    #[error("the FRI session is not commanding (is the robot application's overlay running?)")]
-    NotCommanding(#[source] Box<kuka_fri::FriError>),
-    #[error("the arm did not come to rest within {waited:?}")]
-    NotAtRest { waited: Duration },
-    #[error("the arm moved during the exposure of frame {frame}")]
-    MovedDuringExposure { frame: u64 },
-    #[error(
-        "frame {frame} is {}x{}, the camera was {}x{} when its intrinsics were estimated",
-        size.0,
-        size.1,
-        estimated.0,
-        estimated.1
-    )]
-    FrameSizeChanged {
-        frame: u64,
-        size: (u32, u32),
-        estimated: (u32, u32),
-    },
-    #[error("no viewpoint of the board is reachable safely: {dropped:?}")]
-    NoSafeViewpoint {
-        /// Why each candidate was dropped, and how many were.
-        dropped: Vec<(String, usize)>,
-    },
-    #[error("no plan")]
-    NoPlan,
-    #[error("the plan has no viewpoint to watch from")]
-    NoWatchViewpoint,
-    #[error("the routine asked for a viewpoint the plan does not have")]
-    UnplannedViewpoint { index: usize },
-    /// The capture routine asked for a step that needs a frame before any.
-    #[error("{step} without a frame")]
-    NoFrame { step: &'static str },
-    #[error("no camera intrinsics yet")]
-    NoCamera,
-    #[error("no camera frame exposed after the arm came to rest within {waited:?} ({service})")]
-    NoFrameInTime { waited: Duration, service: String },
-    #[error("the {service} service carries {} frames", kind.name())]
-    WrongStream {
-        /// "colour" or "depth".
-        service: &'static str,
-        kind: b2b_frames::StreamKind,
-    },
-    #[error("short {}frame", if *depth { "depth " } else { "" })]
-    ShortFrame { depth: bool },
-    #[error("depth frame {frame} has no depth unit")]
-    NoDepthUnit { frame: u64 },
-    #[error(
-        "depth frame {frame} is {}x{} but its colour frame is {}x{}: depth must be aligned to colour",
-        depth.0,
-        depth.1,
-        colour.0,
-        colour.1
-    )]
-    DepthNotAligned {
-        frame: u64,
-        depth: (u32, u32),
-        colour: (u32, u32),
-    },
-    #[error(
-        "frame {frame} carries focal lengths {fx} and {fy}: neither positive nor both zero (none given)"
-    )]
-    BadFocalLengths { frame: u64, fx: f64, fy: f64 },
     #[error("cannot find this process's own executable")]
     OwnExecutable(#[source] std::io::Error),
     #[error(
@@ -521,7 +452,8 @@ mod tests {
     /// with the file as its context did.
     #[test]
     fn a_file_names_itself_before_its_cause() {
-        let e = ServiceError::NoDepthUnit { frame: 3 }.in_file(Path::new("s.json"));
+        let e = ServiceError::from(b2b_live::LiveError::NoDepthUnit { frame: 3 })
+            .in_file(Path::new("s.json"));
         assert_eq!(
             b2b_pipeline::error_chain(&e),
             "s.json: depth frame 3 has no depth unit"
@@ -542,7 +474,7 @@ mod tests {
         assert_eq!(crate::exit_status(&library).map(|s| s.code), Some(3));
         let wrapped = ServiceError::from(status()).in_file(Path::new("RESULT.json"));
         assert_eq!(crate::exit_status(&wrapped).map(|s| s.code), Some(3));
-        assert!(crate::exit_status(&ServiceError::NoPlan).is_none());
+        assert!(crate::exit_status(&ServiceError::from(b2b_live::LiveError::NoPlan)).is_none());
     }
 
     /// Errors that pass through many functions stay small (clippy's

@@ -18,8 +18,8 @@ use serde::{Deserialize, Serialize};
 
 use b2b_routine::Mode;
 
-use crate::live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource};
 use crate::{Result, ServiceError};
+use b2b_live::{FrameSource, IceoryxFrames, LiveConfig, LiveSource};
 use b2b_routine::plan::PlanConfig;
 
 /// One cart's setup (`--setup FILE`, JSON).
@@ -179,6 +179,7 @@ pub fn live_source(
         setup.guard()?,
         target,
     )
+    .map_err(ServiceError::from)
 }
 
 /// Starts the FRI client for `setup` on `conn`.

@@ -7,7 +7,8 @@
 use std::time::Duration;
 
 use b2b_frames::{FrameHeader, FramePublisher, Stream, StreamKind, service_name_in};
-use b2b_services::live::{DEPTH_PAIR_WINDOW_NS, FrameSource, IceoryxFrames};
+use b2b_live::live::DEPTH_PAIR_WINDOW_NS;
+use b2b_live::{FrameSource, IceoryxFrames};
 
 const W: u32 = 64;
 const H: u32 = 48;

@@ -11,13 +11,13 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use b2b_calib::camera::CameraModel;
+use b2b_live::{
+    ArmPort, Clock, FrameSource, LiveConfig, LiveError, LiveFrame, LiveSource, WatchObserve,
+};
+use b2b_live::{CaptureSource, Progress};
 use b2b_robot::{Arm, Joints};
 use b2b_routine::Mode;
 use b2b_routine::plan::PlanConfig;
-use b2b_services::ServiceError;
-use b2b_services::agent::{CaptureSource, Progress};
-use b2b_services::live::{FrameSource, LiveConfig, LiveFrame, LiveSource, WatchObserve};
-use b2b_services::ports::{ArmPort, Clock};
 use b2b_services::setup::CellSetup;
 use kuka_fri::{ControllerTime, FriError, JointState, SessionState};
 
@@ -146,11 +146,11 @@ impl FakeFrames {
 }
 
 impl FrameSource for FakeFrames {
-    fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> b2b_services::Result<LiveFrame> {
+    fn frame_after(&mut self, after_ns: u64, timeout: Duration) -> b2b_live::Result<LiveFrame> {
         self.asked.borrow_mut().push(after_ns);
         if !self.comes {
             self.clock.sleep(timeout);
-            return Err(ServiceError::NoFrameInTime {
+            return Err(LiveError::NoFrameInTime {
                 waited: timeout,
                 service: "fake/robot1/colour".into(),
             });
@@ -171,11 +171,7 @@ impl FrameSource for FakeFrames {
         })
     }
 
-    fn newest_after(
-        &mut self,
-        after_ns: u64,
-        timeout: Duration,
-    ) -> b2b_services::Result<LiveFrame> {
+    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> b2b_live::Result<LiveFrame> {
         self.frame_after(after_ns, timeout)
     }
 
@@ -194,7 +190,7 @@ fn source(
     arm: FakeArm,
     frames: FakeFrames,
     clock: &VirtualClock,
-) -> b2b_services::Result<LiveSource<FakeArm, VirtualClock>> {
+) -> b2b_live::Result<LiveSource<FakeArm, VirtualClock>> {
     let setup = CellSetup::load(
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/fixtures/setup-robot1.json"),
     )
@@ -233,11 +229,11 @@ fn source(
 
 fn next(
     source: &mut LiveSource<FakeArm, VirtualClock>,
-) -> b2b_services::Result<Option<b2b_services::agent::SourceCapture>> {
+) -> b2b_live::Result<Option<b2b_live::SourceCapture>> {
     source.next(&Progress::default(), &AtomicBool::new(false))
 }
 
-fn watch(source: &mut LiveSource<FakeArm, VirtualClock>) -> b2b_services::Result<()> {
+fn watch(source: &mut LiveSource<FakeArm, VirtualClock>) -> b2b_live::Result<()> {
     source.watch(
         Duration::from_millis(200),
         WatchObserve::Target,
@@ -255,7 +251,7 @@ fn an_arm_without_joint_states_is_not_connected() {
     };
     let r = source(arm, FakeFrames::new(&clock), &clock);
     assert!(
-        matches!(r, Err(ServiceError::NoJointState { source: Some(_) })),
+        matches!(r, Err(LiveError::NoJointState { source: Some(_) })),
         "{r:?}"
     );
 }
@@ -270,7 +266,7 @@ fn an_arm_never_at_rest_is_not_at_rest_after_the_settle_timeout() {
     let mut source = source(arm, frames, &clock).unwrap();
     let r = next(&mut source);
     assert!(
-        matches!(r, Err(ServiceError::NotAtRest { waited }) if waited == SETTLE),
+        matches!(r, Err(LiveError::NotAtRest { waited }) if waited == SETTLE),
         "{r:?}"
     );
     // The settle timeout passed on the virtual clock, polled every 10 ms; no
@@ -310,7 +306,7 @@ fn a_frame_that_never_comes_is_the_frame_timeout() {
     let mut source = source(FakeArm::new(&clock), frames, &clock).unwrap();
     let r = next(&mut source);
     assert!(
-        matches!(&r, Err(ServiceError::NoFrameInTime { waited, .. }) if *waited == Duration::from_secs(20)),
+        matches!(&r, Err(LiveError::NoFrameInTime { waited, .. }) if *waited == Duration::from_secs(20)),
         "{r:?}"
     );
     assert_eq!(asked.borrow().len(), 1);
@@ -327,7 +323,7 @@ fn the_arm_moving_during_the_exposure_is_refused() {
     let mut source = source(arm, frames, &clock).unwrap();
     let r = next(&mut source);
     assert!(
-        matches!(r, Err(ServiceError::MovedDuringExposure { frame: 1 })),
+        matches!(r, Err(LiveError::MovedDuringExposure { frame: 1 })),
         "{r:?}"
     );
 }
@@ -342,7 +338,7 @@ fn a_session_not_commanding_stops_the_watch_with_its_error() {
     let mut source = source(arm, FakeFrames::new(&clock), &clock).unwrap();
     let r = watch(&mut source);
     assert!(
-        matches!(&r, Err(ServiceError::NotCommanding(e)) if matches!(**e, FriError::Timeout { .. })),
+        matches!(&r, Err(LiveError::NotCommanding(e)) if matches!(**e, FriError::Timeout { .. })),
         "{r:?}"
     );
     assert!(source.into_arm().moves.borrow().is_empty());
@@ -358,7 +354,7 @@ fn an_aborted_motion_stops_the_watch_with_its_error() {
     let mut source = source(arm, FakeFrames::new(&clock), &clock).unwrap();
     let r = watch(&mut source);
     assert!(
-        matches!(&r, Err(ServiceError::Fri(e)) if matches!(&**e, FriError::MotionAborted { reason } if reason == "connection lost")),
+        matches!(&r, Err(LiveError::Fri(e)) if matches!(&**e, FriError::MotionAborted { reason } if reason == "connection lost")),
         "{r:?}"
     );
     // The watch moved once, to its pose: the first planned viewpoint.

@@ -13,12 +13,11 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use b2b_calib::camera::CameraModel;
+use b2b_live::{ArmPort, Clock, FrameSource, LiveConfig, LiveFrame, LiveSource};
+use b2b_live::{CaptureSource, Progress, SourceCapture};
 use b2b_robot::{Arm, Joints};
 use b2b_routine::plan::PlanConfig;
 use b2b_routine::{MAX_TRIES, Mode, OFF_CENTRE_FRACTION, RoutineConfig};
-use b2b_services::agent::{CaptureSource, Progress, SourceCapture};
-use b2b_services::live::{FrameSource, LiveConfig, LiveFrame, LiveSource};
-use b2b_services::ports::{ArmPort, Clock};
 use b2b_services::setup::CellSetup;
 use b2b_sim::render::{RenderSettings, Renderer};
 use b2b_sim::scene::Scene;
@@ -115,11 +114,7 @@ struct RenderedFrames {
 }
 
 impl FrameSource for RenderedFrames {
-    fn frame_after(
-        &mut self,
-        after_ns: u64,
-        _timeout: Duration,
-    ) -> b2b_services::Result<LiveFrame> {
+    fn frame_after(&mut self, after_ns: u64, _timeout: Duration) -> b2b_live::Result<LiveFrame> {
         self.clock.sleep(Duration::from_millis(33));
         self.number += 1;
         let q = self.q.get();
@@ -153,11 +148,7 @@ impl FrameSource for RenderedFrames {
         })
     }
 
-    fn newest_after(
-        &mut self,
-        after_ns: u64,
-        timeout: Duration,
-    ) -> b2b_services::Result<LiveFrame> {
+    fn newest_after(&mut self, after_ns: u64, timeout: Duration) -> b2b_live::Result<LiveFrame> {
         self.frame_after(after_ns, timeout)
     }
 

@@ -12,10 +12,11 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use b2b_calib::refine::RefineOptions;
+use b2b_live::ReplaySource;
 use b2b_protocol::messages::{
     AgentState, AgentStatus, COORDINATOR, Envelope, SessionAnnouncement, result_key, session_key,
 };
-use b2b_services::agent::{AgentOptions, ReplaySource, run_agent_on};
+use b2b_services::agent::{AgentOptions, run_agent_on};
 use b2b_services::bus::{Bus, BusError, Declaration, Inbox, MemoryBus, Received, Replies};
 use b2b_services::coordinator::{Counters, FRUITLESS_QUERIES, RunOptions, run_on};
 

@@ -7,7 +7,7 @@ use std::cell::Cell;
 use std::rc::Rc;
 use std::time::{Duration, Instant};
 
-use b2b_services::ports::Clock;
+use b2b_live::Clock;
 
 /// Host time of the virtual clock's start, ns since the Unix epoch.
 pub const EPOCH_NS: u64 = 1_700_000_000_000_000_000;

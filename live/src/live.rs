@@ -20,9 +20,9 @@ use b2b_robot::{Arm, Joints};
 use kuka_fri::{FriClient, SafetyGuard, SessionState};
 use nalgebra::{Isometry3, Point2, Point3};
 
-use crate::agent::{CaptureSource, Progress, SourceCapture};
 use crate::ports::{ArmPort, Clock, SystemClock};
-use crate::{Result, ServiceError};
+use crate::source::{CaptureSource, Progress, SourceCapture};
+use crate::{LiveError, Result};
 use b2b_routine::plan::{
     Plan, PlanConfig, PlanScene, Viewpoint, leg_is_safe, plan_viewpoints, reach, recentre,
 };
@@ -272,7 +272,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         target: Target,
     ) -> Result<Self> {
         fri.wait_for_joints(Duration::from_secs(15))
-            .map_err(|e| ServiceError::NoJointState {
+            .map_err(|e| LiveError::NoJointState {
                 source: Some(Box::new(e)),
             })?;
         let routine = Routine::new(cfg.mode.clone(), cfg.plan.count);
@@ -305,7 +305,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         Ok(self
             .fri
             .latest()
-            .ok_or(ServiceError::NoJointState { source: None })?
+            .ok_or(LiveError::NoJointState { source: None })?
             .q)
     }
 
@@ -320,7 +320,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
                 return Ok(self.clock.now_ns());
             }
             if self.clock.now() >= deadline {
-                return Err(ServiceError::NotAtRest {
+                return Err(LiveError::NotAtRest {
                     waited: self.cfg.settle_timeout,
                 });
             }
@@ -345,7 +345,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         {
             let size = (frame.camera.width, frame.camera.height);
             if (c.width, c.height) != size {
-                return Err(ServiceError::FrameSizeChanged {
+                return Err(LiveError::FrameSizeChanged {
                     frame: frame.number,
                     size,
                     estimated: (c.width, c.height),
@@ -357,14 +357,14 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
             .fri
             .is_still(self.cfg.still_window, self.cfg.still_tol_rad)
         {
-            return Err(ServiceError::MovedDuringExposure {
+            return Err(LiveError::MovedDuringExposure {
                 frame: frame.number,
             });
         }
         let js = self
             .fri
             .latest()
-            .ok_or(ServiceError::NoJointState { source: None })?;
+            .ok_or(LiveError::NoJointState { source: None })?;
         let t = js.timestamp.as_duration().as_secs_f64();
         Ok((frame, js.q, t))
     }
@@ -390,9 +390,9 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         if self.fri.state() != SessionState::CommandingActive {
             self.fri
                 .wait_for_state(SessionState::CommandingActive, Duration::from_secs(10))
-                .map_err(|e| ServiceError::NotCommanding(Box::new(e)))?;
+                .map_err(|e| LiveError::NotCommanding(Box::new(e)))?;
         }
-        let r = self.fri.move_to(q).map_err(ServiceError::from);
+        let r = self.fri.move_to(q).map_err(LiveError::from);
         self.timings.motion_ms += ms(self.since(started));
         r
     }
@@ -459,7 +459,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         let plan = plan_viewpoints(&scene, &q, &cfg)?;
         self.timings.plan_ms += ms(self.since(started));
         if plan.viewpoints.is_empty() {
-            return Err(ServiceError::NoSafeViewpoint {
+            return Err(LiveError::NoSafeViewpoint {
                 dropped: plan.dropped,
             });
         }
@@ -477,20 +477,21 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
     /// The drift watch during the operation: moves to the first planned
     /// viewpoint (the board in view by the setup sheet) and stays there; every
     /// `period` until `stop`, a still frame's observation goes to `deliver`.
-    /// A frame that cannot be had is logged and skipped.
-    pub fn watch(
+    /// A frame that cannot be had is logged and skipped; what `deliver` fails
+    /// with (its own error type) ends the watch.
+    pub fn watch<E: From<LiveError>>(
         &mut self,
         period: Duration,
         observe: WatchObserve,
         stop: &AtomicBool,
-        deliver: &mut dyn FnMut(SourceCapture) -> Result<()>,
-    ) -> Result<()> {
+        deliver: &mut dyn FnMut(SourceCapture) -> Result<(), E>,
+    ) -> Result<(), E> {
         let v = self
             .plan_only()?
             .viewpoints
             .first()
             .cloned()
-            .ok_or(ServiceError::NoWatchViewpoint)?;
+            .ok_or(LiveError::NoWatchViewpoint)?;
         self.move_to(v.q)?;
         let progress = Progress::default();
         let mut row = 0usize;
@@ -573,7 +574,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         {
             self.make_plan(count, first_view, phase)?;
         }
-        self.plan.as_ref().ok_or(ServiceError::NoPlan)
+        self.plan.as_ref().ok_or(LiveError::NoPlan)
     }
 
     fn reject(&self, row: usize, reason: String) -> RejectedCapture {
@@ -614,7 +615,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
         let mut last: Option<(SourceCapture, Joints, LiveFrame)> = None;
         loop {
             if stop.load(Ordering::SeqCst) {
-                return Err(ServiceError::Interrupted);
+                return Err(LiveError::Interrupted);
             }
             let event = match action {
                 VisitAction::MoveTo(q) => match self.move_to(q) {
@@ -631,7 +632,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
                 },
                 VisitAction::Recentre { centre_in_camera } => {
                     let started = self.clock.now();
-                    let (capture, q, _) = last.as_ref().ok_or(ServiceError::NoFrame {
+                    let (capture, q, _) = last.as_ref().ok_or(LiveError::NoFrame {
                         step: "re-centring",
                     })?;
                     let result = self.recentre(
@@ -645,13 +646,13 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
                 }
                 VisitAction::Deliver => {
                     let (mut capture, _, frame) =
-                        last.ok_or(ServiceError::NoFrame { step: "delivering" })?;
+                        last.ok_or(LiveError::NoFrame { step: "delivering" })?;
                     capture.features = self.features(&frame);
                     return Ok(capture);
                 }
                 VisitAction::Reject(reason) => {
                     let (mut capture, _, frame) =
-                        last.ok_or(ServiceError::NoFrame { step: "rejecting" })?;
+                        last.ok_or(LiveError::NoFrame { step: "rejecting" })?;
                     capture.features = self.features(&frame);
                     capture.observed = Err(self.reject(row, reason));
                     return Ok(capture);
@@ -662,7 +663,7 @@ impl<A: ArmPort, C: Clock> LiveSource<A, C> {
                         image: None,
                         base_from_flange: self.arm.fk(&self.measured()?),
                         controller_time_s: None,
-                        camera: self.camera.clone().ok_or(ServiceError::NoCamera)?,
+                        camera: self.camera.clone().ok_or(LiveError::NoCamera)?,
                         intrinsics_estimated: self.camera_estimated,
                         observed: Err(self.reject(row, reason)),
                         pixels: None,
@@ -864,7 +865,7 @@ impl<A: ArmPort, C: Clock> CaptureSource for LiveSource<A, C> {
                         .as_ref()
                         .and_then(|p| p.viewpoints.get(k))
                         .cloned()
-                        .ok_or(ServiceError::UnplannedViewpoint { index: k })?;
+                        .ok_or(LiveError::UnplannedViewpoint { index: k })?;
                 }
                 Step::Stop(_) => return Ok(None),
             }
@@ -996,17 +997,17 @@ impl IceoryxFrames {
             }
             let kind = h.stream_kind()?;
             if kind != b2b_frames::StreamKind::Z16 {
-                return Err(ServiceError::WrongStream {
+                return Err(LiveError::WrongStream {
                     service: "depth",
                     kind,
                 });
             }
             if !(h.depth_unit_m > 0.0 && h.depth_unit_m.is_finite()) {
-                return Err(ServiceError::NoDepthUnit { frame: number });
+                return Err(LiveError::NoDepthUnit { frame: number });
             }
             let colour_size = (colour.camera.width, colour.camera.height);
             if (h.width, h.height) != colour_size {
-                return Err(ServiceError::DepthNotAligned {
+                return Err(LiveError::DepthNotAligned {
                     frame: number,
                     depth: (h.width, h.height),
                     colour: colour_size,
@@ -1023,9 +1024,7 @@ impl IceoryxFrames {
             }
             let mut data = Vec::with_capacity(h.width as usize * h.height as usize);
             for y in 0..h.height {
-                let row = frame
-                    .row(y)
-                    .ok_or(ServiceError::ShortFrame { depth: true })?;
+                let row = frame.row(y).ok_or(LiveError::ShortFrame { depth: true })?;
                 data.extend(
                     row.chunks_exact(2)
                         .map(|b| u16::from_le_bytes([b[0], b[1]])),
@@ -1057,7 +1056,7 @@ fn to_live(frame: &b2b_frames::Frame) -> Result<LiveFrame> {
     // that is not a positive focal length is a broken header.
     let intrinsics_given = !(h.fx == 0.0 && h.fy == 0.0);
     if intrinsics_given && !(h.fx > 0.0 && h.fy > 0.0) {
-        return Err(ServiceError::BadFocalLengths {
+        return Err(LiveError::BadFocalLengths {
             frame: h.frame_number,
             fx: h.fx,
             fy: h.fy,
@@ -1070,9 +1069,7 @@ fn to_live(frame: &b2b_frames::Frame) -> Result<LiveFrame> {
     };
     let mut grey = Vec::with_capacity(h.width as usize * h.height as usize);
     for y in 0..h.height {
-        let row = frame
-            .row(y)
-            .ok_or(ServiceError::ShortFrame { depth: false })?;
+        let row = frame.row(y).ok_or(LiveError::ShortFrame { depth: false })?;
         match kind {
             b2b_frames::StreamKind::Gray8 => grey.extend_from_slice(row),
             b2b_frames::StreamKind::Rgb8 => grey.extend(row.chunks_exact(3).map(|p| {
@@ -1080,7 +1077,7 @@ fn to_live(frame: &b2b_frames::Frame) -> Result<LiveFrame> {
                     .round() as u8
             })),
             kind => {
-                return Err(ServiceError::WrongStream {
+                return Err(LiveError::WrongStream {
                     service: "colour",
                     kind,
                 });
@@ -1115,7 +1112,7 @@ impl FrameSource for IceoryxFrames {
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
-                return Err(ServiceError::NoFrameInTime {
+                return Err(LiveError::NoFrameInTime {
                     waited: timeout,
                     service: self.subscriber.service_name().to_owned(),
                 });
