@@ -29,6 +29,12 @@
 //!
 //! The SVG is hand-written ([`svg`]): the plots are simple and a plotting crate
 //! would bring a font stack for text the browser draws anyway.
+//!
+//! The result's own files are this crate's too: RESULT.json's siblings in the
+//! formats other tools read ([`formats`]: ROS YAML, OpenCV YAML, a ROS 2 launch
+//! file, a URDF) and their writing all or nothing, with the refusals that come
+//! before any work ([`write`]: a destination a file cannot replace, an output
+//! over its own input).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
@@ -38,7 +44,9 @@ use b2b_protocol::messages::Capture;
 use b2b_protocol::{CalibrationResult, HandEyeResult, Pose, ProtocolError, VerifyReport};
 use nalgebra::{UnitQuaternion, Vector3};
 
+pub mod formats;
 pub mod svg;
+pub mod write;
 
 use svg::{Axes, GREEN, GREY, LEGEND_Y, PALETTE, RED, Svg, escape, legend};
 
@@ -69,6 +77,92 @@ pub enum ReportError {
         path: PathBuf,
         source: std::io::Error,
     },
+    /// The result's transform is not one (passed on as it is: it names the field).
+    #[error(transparent)]
+    Transform(#[from] ProtocolError),
+    #[error("cannot serialise the {what}")]
+    Serialize {
+        what: &'static str,
+        #[source]
+        source: serde_json::Error,
+    },
+
+    // Writing result files ([`write`]).
+    #[error("cannot create {}", path.display())]
+    CreateFolder {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A destination a file cannot replace: a directory, a pipe, a device.
+    #[error(
+        "{} is {kind}: it cannot be replaced by the output file; remove it or choose another path",
+        path.display()
+    )]
+    NotReplaceable { path: PathBuf, kind: &'static str },
+    /// [`write::write_together`] refused before writing anything.
+    #[error(
+        "nothing was written (the previous files, if any, are left as they were: {})",
+        joined(files)
+    )]
+    NothingWritten {
+        files: Vec<PathBuf>,
+        #[source]
+        source: Box<ReportError>,
+    },
+    #[error("cannot write {} (through {}); nothing was replaced", path.display(), temporary.display())]
+    WriteThrough {
+        path: PathBuf,
+        temporary: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot keep {} while replacing it", path.display())]
+    KeepPrevious {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot replace {}; nothing was replaced", path.display())]
+    Replace {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// An output path inside the dataset it is computed from.
+    #[error(
+        "{flag} {} is inside the dataset folder {} (resolved: {}): a result is never \
+         written into the data it comes from; choose a path outside the dataset",
+        path.display(),
+        dataset.display(),
+        resolved.display()
+    )]
+    OutputInsideDataset {
+        flag: String,
+        path: PathBuf,
+        dataset: PathBuf,
+        resolved: PathBuf,
+    },
+    /// An output path that is one of the inputs.
+    #[error(
+        "{flag} {} is the input {}: it would be overwritten; choose another path",
+        path.display(),
+        input.display()
+    )]
+    OutputIsInput {
+        flag: String,
+        path: PathBuf,
+        input: PathBuf,
+    },
+}
+
+/// Paths as one comma-separated list.
+fn joined(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 fn bad(field: impl Into<String>, reason: impl Into<String>) -> ReportError {
@@ -1670,5 +1764,34 @@ mod tests {
             reason: "empty".into(),
         };
         assert_cause_once(&ReportError::Invalid { path, source });
+        let source = serde_json::from_str::<serde_json::Value>("{ nope").unwrap_err();
+        assert_cause_once(&ReportError::Serialize {
+            what: "result",
+            source,
+        });
+        assert_cause_once(&ReportError::CreateFolder {
+            path: "out".into(),
+            source: io(),
+        });
+        assert_cause_once(&ReportError::NothingWritten {
+            files: vec!["a.json".into()],
+            source: Box::new(ReportError::NotReplaceable {
+                path: "b".into(),
+                kind: "a directory",
+            }),
+        });
+        assert_cause_once(&ReportError::WriteThrough {
+            path: "a".into(),
+            temporary: ".a.tmp".into(),
+            source: io(),
+        });
+        assert_cause_once(&ReportError::KeepPrevious {
+            path: "a".into(),
+            source: io(),
+        });
+        assert_cause_once(&ReportError::Replace {
+            path: "a".into(),
+            source: io(),
+        });
     }
 }

@@ -15,10 +15,13 @@
 //! history. A status is believed no further than can be checked: one that
 //! claims more captures than the robot's history serves is replaced by the
 //! robot's own, history queries that bring nothing new stop after
-//! [`FRUITLESS_QUERIES`], and a robot finished with every capture held stays
-//! finished. A failed solve is published ([`RunFailure`]) so that the agents
-//! stop waiting.
+//! `FRUITLESS_QUERIES`, and a robot finished with every capture held stays
+//! finished. Those decisions are `b2b-store`'s, unit-tested there
+//! ([`crate::store::gathering`]: `Heard`, `CatchUp`, `Gathering`); this loop
+//! decodes the messages, feeds them in and does what they say. A failed solve
+//! is published ([`RunFailure`]) so that the agents stop waiting.
 
+use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -33,6 +36,7 @@ use b2b_protocol::messages::{
 
 use crate::agent::Sequence;
 use crate::bus::{self, Bus};
+use crate::store::gathering::{CatchUp, Fate, Gathering, Heard, STATUS_ONLY_GRACE};
 use crate::store::{Arrival, Sample, Store};
 use crate::{Result, ServiceError};
 
@@ -69,20 +73,6 @@ pub struct Counters {
     pub stale: usize,
 }
 
-/// What one valid message of an agent was.
-#[derive(Debug, Clone, PartialEq, Eq)]
-struct Heard {
-    robot: String,
-    /// A status (a live message, unlike the captures a history query returns).
-    status: bool,
-    /// A capture's index.
-    index: Option<u64>,
-    /// It carries this run's session.
-    in_session: bool,
-    /// What the store made of it (`None`: not offered, not of this session).
-    arrival: Option<Arrival>,
-}
-
 /// Checks one message from the bus and, when it belongs to this run's
 /// `session`, journals and keeps it, with the certificate that signed it on
 /// the secured bus. What is not of the session is dropped (logged, counted
@@ -113,22 +103,11 @@ fn handle(
             return Ok(None);
         }
     };
-    let (robot, theirs, status, index) = match &sample {
-        Sample::Capture(e) => (&e.robot, &e.session, false, Some(e.body.index)),
-        Sample::Status(e) => (&e.robot, &e.session, true, None),
-        Sample::HandEye(e) => (&e.robot, &e.session, false, None),
-    };
-    let mut heard = Heard {
-        robot: robot.clone(),
-        status,
-        index,
-        in_session: theirs.as_deref() == Some(session),
-        arrival: None,
-    };
-    match theirs {
-        Some(s) if s == session => {}
-        None if status => return Ok(Some(heard)),
-        None => {
+    let (mut heard, fate) = Heard::of(&sample, session);
+    match fate {
+        Fate::Keep => {}
+        Fate::NotYetBound => return Ok(Some(heard)),
+        Fate::BeforeSession => {
             counters.stale += 1;
             tracing::debug!(
                 "{key}: sent before the agent heard this run's session: dropped (its history \
@@ -136,7 +115,7 @@ fn handle(
             );
             return Ok(Some(heard));
         }
-        Some(other) => {
+        Fate::OtherSession(other) => {
             counters.stale += 1;
             crate::warn_limited(
                 &format!("{key} stale"),
@@ -159,20 +138,16 @@ fn handle(
 }
 
 /// Asks the `history` queryables matching `selector` for every capture and
-/// keeps those of this run's session. Each robot that answered is recorded
-/// with how many valid captures of the session it served
-/// ([`Store::history_served`]; one that did not answer may be down, and says
-/// nothing). Returns the robots that gave something new.
+/// keeps those of this run's session, noting what each robot's history
+/// served ([`CatchUp`]). Returns the robots that gave something new.
 fn catch_up(
     bus: &dyn Bus,
     store: &mut Store,
     counters: &mut Counters,
     selector: &str,
     session: &str,
-) -> Result<std::collections::BTreeSet<String>> {
-    let mut served: std::collections::BTreeMap<String, std::collections::BTreeSet<u64>> =
-        Default::default();
-    let mut news = std::collections::BTreeSet::new();
+) -> Result<BTreeSet<String>> {
+    let mut answer = CatchUp::default();
     for reply in bus.query(selector, HISTORY_QUERY_TIMEOUT)? {
         let key = reply.key.replace("/history", "/capture");
         let heard = handle(
@@ -183,36 +158,15 @@ fn catch_up(
             reply.signer.as_deref(),
             session,
         )?;
-        if let Some(h) = heard.filter(|h| h.in_session) {
-            if let Some(index) = h.index {
-                served.entry(h.robot.clone()).or_default().insert(index);
-            }
-            if h.arrival == Some(Arrival::New) {
-                news.insert(h.robot);
-            }
+        if let Some(h) = heard {
+            answer.replied(h);
         }
     }
-    for (robot, indices) in served {
-        store.history_served(&robot, indices.len() as u64);
-    }
-    Ok(news)
+    Ok(answer.finish(store))
 }
 
 /// How long a history query waits for its replies.
 pub const HISTORY_QUERY_TIMEOUT: Duration = Duration::from_secs(2);
-
-/// How many history queries in a row may bring a robot nothing new before
-/// the coordinator stops asking it (until something new of it arrives, or
-/// it first echoes the session): what a status claims beyond that is not
-/// waited for by re-asking.
-pub const FRUITLESS_QUERIES: u32 = 3;
-
-/// How long, once every robot that sent captures has finished, a run without
-/// `--robots` waits for robots heard only through statuses before it leaves
-/// them out, naming them: longer than an agent takes from its first status
-/// to its first capture, well under the 10 s an operator waits past the last
-/// agent.
-pub const STATUS_ONLY_GRACE: Duration = Duration::from_secs(5);
 
 /// Computes the result from what the store holds.
 pub fn compute(store: &Store, opts: &RunOptions) -> Result<CalibrationResult> {
@@ -406,18 +360,15 @@ fn collect_and_solve(
         &agent_key("*", "history"),
         session,
     )?;
-    let mut gather = Gathering::default();
+    let mut gather = Gathering::new(opts.order.clone(), opts.robots);
     let mut last_check = Instant::now();
     let mut last_report = Instant::now();
     let mut solve_with = None;
     loop {
-        if stop.load(Ordering::SeqCst)
-            || (store.complete(opts.order.as_deref(), opts.robots)
-                && gather.not_echoing(store, opts).is_empty())
-        {
+        if stop.load(Ordering::SeqCst) || gather.done(store) {
             break;
         }
-        if let Some((with, without)) = gather.without_status_only(store, opts, Instant::now()) {
+        if let Some((with, without)) = gather.without_status_only(store, Instant::now()) {
             let text = format!(
                 "not waiting for {}: heard only through statuses, no capture of theirs arrived \
                  nor is in their history {} s after the others finished (a stray or forged \
@@ -434,7 +385,7 @@ fn collect_and_solve(
             last_report = Instant::now();
             eprintln!(
                 "coordinator: waiting for {}",
-                gather.waiting_for(store, opts, session).join("; ")
+                gather.waiting_for(store, session).join("; ")
             );
         }
         if let Some(m) = inbox.recv_timeout(Duration::from_millis(100))?
@@ -527,135 +478,6 @@ fn failure_reason(text: &str) -> String {
         cut -= 1;
     }
     format!("{}…", &line[..cut])
-}
-
-/// What the gathering loop knows beside the store: who echoes the session,
-/// and how often each robot's history was asked in vain.
-#[derive(Debug, Default)]
-struct Gathering {
-    /// The robots whose statuses have echoed this run's session (a later
-    /// status without it, forged or stale, takes nothing back).
-    echoed: std::collections::BTreeSet<String>,
-    /// Robots heard only without this run's session so far.
-    unbound: std::collections::BTreeSet<String>,
-    /// History queries in a row that brought a robot nothing new.
-    fruitless: std::collections::BTreeMap<String, u32>,
-    /// Since when every robot holding captures is done while others were
-    /// heard only through statuses ([`Gathering::without_status_only`]).
-    status_only_since: Option<Instant>,
-}
-
-impl Gathering {
-    /// Notes a valid message: a first echo of the session, or a new capture
-    /// of a robot, makes its history worth asking again.
-    fn heard(&mut self, h: &Heard) {
-        if h.status && !h.in_session && !self.echoed.contains(&h.robot) {
-            self.unbound.insert(h.robot.clone());
-        }
-        if h.status && h.in_session && self.echoed.insert(h.robot.clone()) {
-            self.unbound.remove(&h.robot);
-            self.fruitless.remove(&h.robot);
-        }
-        if h.index.is_some() && h.arrival == Some(Arrival::New) {
-            self.fruitless.remove(&h.robot);
-        }
-    }
-
-    /// The robots missing captures whose history is still worth asking:
-    /// at most [`FRUITLESS_QUERIES`] answers in a row without anything new.
-    fn to_ask(&self, store: &Store) -> Vec<String> {
-        store
-            .missing()
-            .into_iter()
-            .filter(|r| self.fruitless.get(r).copied().unwrap_or(0) < FRUITLESS_QUERIES)
-            .collect()
-    }
-
-    fn answered(&mut self, robot: &str, anything_new: bool) {
-        let n = self.fruitless.entry(robot.to_owned()).or_default();
-        *n = if anything_new { 0 } else { *n + 1 };
-    }
-
-    /// Without `--robots`: once every robot holding captures has finished
-    /// (at least [`RunOptions::robots`] of them, each echoing the session) while the
-    /// others were heard only through statuses (no capture of theirs arrived
-    /// nor is in their history), and [`STATUS_ONLY_GRACE`] has passed since,
-    /// the robots to solve with and those left out. A stray or forged status
-    /// of a robot that sends nothing cannot hold the run.
-    fn without_status_only(
-        &mut self,
-        store: &Store,
-        opts: &RunOptions,
-        now: Instant,
-    ) -> Option<(Vec<String>, Vec<String>)> {
-        if opts.order.is_some() {
-            return None;
-        }
-        let (with, without): (Vec<String>, Vec<String>) = store
-            .robots()
-            .into_iter()
-            .chain(self.unbound.iter().cloned())
-            .collect::<std::collections::BTreeSet<_>>()
-            .into_iter()
-            .partition(|r| store.capture_count(r) > 0);
-        let ready = !without.is_empty()
-            && store.complete(Some(&with), opts.robots)
-            && with.iter().all(|r| self.echoed.contains(r));
-        if !ready {
-            self.status_only_since = None;
-            return None;
-        }
-        let since = *self.status_only_since.get_or_insert(now);
-        (now.duration_since(since) >= STATUS_ONLY_GRACE).then_some((with, without))
-    }
-
-    /// The robots of the run whose statuses have not echoed its session.
-    fn not_echoing(&self, store: &Store, opts: &RunOptions) -> Vec<String> {
-        let mut ids = opts.order.clone().unwrap_or_else(|| store.robots());
-        if opts.order.is_none() {
-            ids.extend(self.unbound.iter().cloned());
-            ids.sort();
-            ids.dedup();
-        }
-        ids.into_iter()
-            .filter(|r| !self.echoed.contains(r))
-            .collect()
-    }
-
-    /// One phrase per robot not done: what the store says of it, and that
-    /// its statuses do not echo the session.
-    fn waiting_for(&self, store: &Store, opts: &RunOptions, session: &str) -> Vec<String> {
-        let mut waiting = store.waiting_for(opts.order.as_deref(), opts.robots);
-        for r in self.not_echoing(store, opts) {
-            let echo = format!(
-                "its statuses do not echo this run's session {session} yet (an agent of \
-                 another run, or one that has not heard the coordinator)"
-            );
-            match waiting
-                .iter_mut()
-                .find(|w| w.starts_with(&format!("{r}: ")))
-            {
-                Some(w) => {
-                    w.push_str(", and ");
-                    w.push_str(&echo);
-                }
-                None => waiting.push(format!("{r}: {echo}")),
-            }
-        }
-        for (r, n) in &self.fruitless {
-            if *n >= FRUITLESS_QUERIES
-                && let Some(w) = waiting
-                    .iter_mut()
-                    .find(|w| w.starts_with(&format!("{r}: ")))
-            {
-                w.push_str(&format!(
-                    " (its history, asked {n} times, gave nothing new: asked again when \
-                     something new of it arrives)"
-                ));
-            }
-        }
-        waiting
-    }
 }
 
 /// The RGB-D method with hand-eyes read from HANDEYE.json files, one per robot of

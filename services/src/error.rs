@@ -71,68 +71,6 @@ pub enum ServiceError {
         source: Box<ServiceError>,
     },
 
-    // Result files.
-    /// A destination a file cannot replace: a directory, a pipe, a device.
-    #[error(
-        "{} is {kind}: it cannot be replaced by the output file; remove it or choose another path",
-        path.display()
-    )]
-    NotReplaceable { path: PathBuf, kind: &'static str },
-    /// [`crate::outputs::write_together`] refused before writing anything.
-    #[error(
-        "nothing was written (the previous files, if any, are left as they were: {})",
-        joined(files)
-    )]
-    NothingWritten {
-        files: Vec<PathBuf>,
-        #[source]
-        source: Box<ServiceError>,
-    },
-    #[error("cannot write {} (through {}); nothing was replaced", path.display(), temporary.display())]
-    WriteThrough {
-        path: PathBuf,
-        temporary: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("cannot keep {} while replacing it", path.display())]
-    KeepPrevious {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("cannot replace {}; nothing was replaced", path.display())]
-    Replace {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    /// An output path inside the dataset it is computed from.
-    #[error(
-        "{flag} {} is inside the dataset folder {} (resolved: {}): a result is never \
-         written into the data it comes from; choose a path outside the dataset",
-        path.display(),
-        dataset.display(),
-        resolved.display()
-    )]
-    OutputInsideDataset {
-        flag: String,
-        path: PathBuf,
-        dataset: PathBuf,
-        resolved: PathBuf,
-    },
-    /// An output path that is one of the inputs.
-    #[error(
-        "{flag} {} is the input {}: it would be overwritten; choose another path",
-        path.display(),
-        input.display()
-    )]
-    OutputIsInput {
-        flag: String,
-        path: PathBuf,
-        input: PathBuf,
-    },
-
     // The agent and the coordinator on the bus.
     #[error("{}: not a sequence number", path.display())]
     NotASequenceNumber {
@@ -347,15 +285,6 @@ impl ServiceError {
     }
 }
 
-/// Paths as one comma-separated list.
-fn joined(paths: &[PathBuf]) -> String {
-    paths
-        .iter()
-        .map(|p| p.display().to_string())
-        .collect::<Vec<_>>()
-        .join(", ")
-}
-
 /// `From` for the boxed errors, so that `?` boxes them.
 macro_rules! boxed_from {
     ($($variant:ident: $error:ty),* $(,)?) => {
@@ -397,26 +326,6 @@ mod tests {
             ServiceError::NotValidFile {
                 path: "a.json".into(),
                 source: json(),
-            },
-            ServiceError::NothingWritten {
-                files: vec!["a.json".into()],
-                source: Box::new(ServiceError::NotReplaceable {
-                    path: "b".into(),
-                    kind: "a directory",
-                }),
-            },
-            ServiceError::WriteThrough {
-                path: "a".into(),
-                temporary: ".a.tmp".into(),
-                source: io_error(),
-            },
-            ServiceError::KeepPrevious {
-                path: "a".into(),
-                source: io_error(),
-            },
-            ServiceError::Replace {
-                path: "a".into(),
-                source: io_error(),
             },
             ServiceError::NotASequenceNumber {
                 path: "a.seq".into(),

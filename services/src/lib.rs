@@ -57,7 +57,8 @@ pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
         std::fs::create_dir_all(parent).map_err(ServiceError::io("create", parent))?;
     }
     let text = serde_json::to_string_pretty(value)?;
-    outputs::write_together(&[(path.to_owned(), (text + "\n").into_bytes())])
+    b2b_report::write::write_together(&[(path.to_owned(), (text + "\n").into_bytes())])?;
+    Ok(())
 }
 
 /// Reads a JSON file into a value, naming the file in errors.

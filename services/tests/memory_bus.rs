@@ -18,7 +18,8 @@ use b2b_protocol::messages::{
 };
 use b2b_services::agent::{AgentOptions, run_agent_on};
 use b2b_services::bus::{Bus, BusError, Declaration, Inbox, MemoryBus, Received, Replies};
-use b2b_services::coordinator::{Counters, FRUITLESS_QUERIES, RunOptions, run_on};
+use b2b_services::coordinator::{Counters, RunOptions, run_on};
+use b2b_services::store::gathering::FRUITLESS_QUERIES;
 
 fn dataset() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../datasets/sim-checkerboard-2x12")

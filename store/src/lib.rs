@@ -5,6 +5,9 @@
 //! The journal is one JSON object per line. A crash can leave a partial last
 //! line; loading reports it and ignores it (that sample had not been used, and the
 //! agents still have it in their history).
+//!
+//! What the coordinator decides while it gathers (which messages are this
+//! run's, whose history to ask again, when the run is done) is [`gathering`].
 
 use std::collections::BTreeMap;
 use std::fs::{File, OpenOptions};
@@ -17,6 +20,8 @@ use b2b_protocol::RejectedCapture;
 use b2b_protocol::messages::{AgentState, AgentStatus, Capture, Envelope, HandEyeUpdate};
 use nalgebra::{Point2, Point3};
 use serde::{Deserialize, Serialize};
+
+pub mod gathering;
 
 /// What the store could not do, with the cause kept as the source.
 #[derive(Debug, thiserror::Error)]
@@ -793,7 +798,7 @@ mod tests {
     use b2b_protocol::Pose;
     use b2b_protocol::messages::{BoardObservation, Intrinsics};
 
-    fn capture(index: u64) -> Capture {
+    pub(crate) fn capture(index: u64) -> Capture {
         Capture {
             index,
             controller_time_s: None,
@@ -824,7 +829,7 @@ mod tests {
         }
     }
 
-    fn status(state: AgentState, published: u64) -> AgentStatus {
+    pub(crate) fn status(state: AgentState, published: u64) -> AgentStatus {
         AgentStatus {
             state,
             good: published as usize,

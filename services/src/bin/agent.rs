@@ -12,11 +12,10 @@ use anyhow::Context;
 use b2b_calib::refine::RefineOptions;
 use b2b_live::WatchObserve;
 use b2b_pipeline::{HandEyeChoice, RobotCamera, hand_eye, observe_robot};
+use b2b_report::write::{check_destinations, refuse_output_over_input};
 use b2b_routine::{Mode, RoutineConfig};
 use b2b_services::agent::{AgentOptions, BusArgs, run_agent, run_replay, run_watch};
-use b2b_services::outputs::{
-    check_destinations, print_agent_result, print_hand_eye, print_plan, refuse_output_over_input,
-};
+use b2b_services::outputs::{print_agent_result, print_hand_eye, print_plan};
 use b2b_services::recording::{RerunArgs, finish_recording, log_hand_eye_run};
 use b2b_services::setup::{Cart, LiveArgs, connect};
 use b2b_services::{

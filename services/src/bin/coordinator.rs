@@ -13,11 +13,10 @@ use b2b_pipeline::causes::{
 use b2b_pipeline::rgbd::RgbdOptions;
 use b2b_pipeline::{B2bMethod, base_to_base_run, load_dataset, pair_transform, verify_pair};
 use b2b_protocol::{CalibrationResult, Verdict};
+use b2b_report::formats::result_paths;
+use b2b_report::write::{check_destinations, refuse_output_over_input, write_result};
 use b2b_services::history;
-use b2b_services::outputs::{
-    add_history, check_destinations, print_result, print_verification, refuse_output_over_input,
-    report_inputs, result_paths, write_result,
-};
+use b2b_services::outputs::{add_history, print_result, print_verification, report_inputs};
 use b2b_services::recording::{
     RerunArgs, finish_recording, log_offline_calibration, log_result, log_verdict, log_verification,
 };
