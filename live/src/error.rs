@@ -130,7 +130,6 @@ mod tests {
             LiveError::NoJointState {
                 source: Some(Box::new(timeout())),
             },
-            LiveError::NoDepthUnit { frame: 3 },
         ] {
             b2b_errors::assert_cause_once(&e);
         }
