@@ -605,6 +605,40 @@ mod tests {
         PathBuf::from("/x/dataset.json")
     }
 
+    /// The one conversion each way between the intrinsics and the math core's
+    /// projection: a camera written as a `camera` block reads back as the same
+    /// projection, and the block is one `dataset.json` accepts.
+    #[test]
+    fn a_camera_round_trips_through_its_block() {
+        let camera = CameraModel::new(
+            1280,
+            720,
+            [910.5, 909.25, 640.125, 359.75],
+            &[0.1, -0.2, 1e-3, -2e-3, 0.05],
+        )
+        .unwrap();
+        let block = intrinsics_of(&camera, 5);
+        assert_eq!(block.dist.len(), 5);
+        assert!(!block.estimated);
+        let json = serde_json::to_string(&block).unwrap();
+        assert!(!json.contains("estimated"), "{json}");
+        let read: Intrinsics = serde_json::from_str(&json).unwrap();
+        validate_camera(&read, |name| Location::field(file(), name)).unwrap();
+        assert_eq!(camera_model(&read).unwrap(), camera);
+        // 14 terms with the thin-prism and tilt ones zero: the modelled eight.
+        let mut wide = read.clone();
+        wide.dist.resize(14, 0.0);
+        validate_camera(&wide, |name| Location::field(file(), name)).unwrap();
+        assert_eq!(camera_model(&wide).unwrap(), camera);
+        // A block without `dist` reads, and is refused by name.
+        let bare: Intrinsics = serde_json::from_str(
+            r#"{"width": 640, "height": 480, "fx": 600, "fy": 600, "cx": 320, "cy": 240}"#,
+        )
+        .unwrap();
+        let e = validate_camera(&bare, |name| Location::field(file(), name)).unwrap_err();
+        assert!(e.to_string().contains("dist has 0 entries"), "{e}");
+    }
+
     #[test]
     fn dictionaries() {
         assert_eq!(dictionary_size("DICT_5X5_100"), Some(100));

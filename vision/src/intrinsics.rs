@@ -13,8 +13,8 @@
 //! point at the centre), the second pass detects again with the first pass's
 //! estimate and calibrates again.
 //!
-//! The result converts to the `camera` block of `dataset.json`
-//! ([`IntrinsicsResult::camera_json`]: `width height fx fy cx cy dist`).
+//! The result is the math core's [`CameraModel`]; `b2b_dataset::intrinsics_of`
+//! turns it into the `camera` block of `dataset.json` (the one intrinsics type).
 
 use std::path::Path;
 
@@ -87,17 +87,6 @@ impl IntrinsicsResult {
     pub fn dist5(&self) -> [f64; 5] {
         let d = &self.camera.dist;
         [d[0], d[1], d[2], d[3], d[4]]
-    }
-
-    /// The `camera` block of a robot in `dataset.json` (shared/dataset-format.md), as
-    /// a JSON object.
-    pub fn camera_json(&self) -> String {
-        let c = &self.camera;
-        let d = self.dist5();
-        format!(
-            "{{\n  \"width\": {},\n  \"height\": {},\n  \"fx\": {:?},\n  \"fy\": {:?},\n  \"cx\": {:?},\n  \"cy\": {:?},\n  \"dist\": [{:?}, {:?}, {:?}, {:?}, {:?}]\n}}\n",
-            c.width, c.height, c.fx, c.fy, c.cx, c.cy, d[0], d[1], d[2], d[3], d[4]
-        )
     }
 }
 
