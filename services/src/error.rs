@@ -33,15 +33,13 @@ pub enum ServiceError {
     #[error(transparent)]
     Robot(#[from] b2b_robot::RobotError),
     #[error(transparent)]
-    Routine(#[from] b2b_routine::RoutineError),
-    #[error(transparent)]
     Fri(Box<kuka_fri::FriError>),
-    #[error(transparent)]
-    Frames(#[from] b2b_frames::FramesError),
     #[error(transparent)]
     Report(Box<b2b_report::ReportError>),
     #[error(transparent)]
     Watch(Box<b2b_watch::WatchError>),
+    #[error(transparent)]
+    Frames(#[from] b2b_frames::FramesError),
     #[error(transparent)]
     Json(#[from] serde_json::Error),
     #[error(transparent)]
@@ -81,8 +79,6 @@ pub enum ServiceError {
     /// A thread panicked holding one of the agent's locks.
     #[error("{what} lock poisoned")]
     Poisoned { what: &'static str },
-    #[error("robot '{robot}' is not in {}", dataset.display())]
-    RobotNotInDataset { robot: String, dataset: PathBuf },
     #[error("interrupted after {captures} captures")]
     InterruptedAfter { captures: u64 },
     /// The coordinator's solve failed; its reason as it sent it.
